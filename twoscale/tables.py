@@ -1,0 +1,242 @@
+"""Precomputed tables and their C² differentiable interpolation.
+
+A table samples a smooth function on a uniform grid in *table coordinates* (for example
+``log10 B`` or ``a/(1+a)``; each axis records its coordinate). It is interpolated by a tensor-product
+**uniform cubic B-spline** whose coefficients are solved at load time so that the spline passes
+through every grid value, with not-a-knot end conditions (third derivative continuous across the
+first and last interior knots). The interpolant is C² (so Levenberg-Marquardt sees continuous
+gradients), fourth-order accurate, and needs 4 coefficients per axis per query.
+
+Out-of-domain rule: a query coordinate is clamped to the axis range ``[lo, hi]``; the value is
+then the edge value and the derivative along that axis is 0. Callers choose coordinates that
+map their whole physical domain into the table (e.g. ``a/(1+a)`` for ``a ∈ [0, ∞)``) or keep
+parameters inside by reparametrisation, so clamping is a documented last resort, never a NaN.
+
+Hot paths slice the parameter axes once (:meth:`Spline.slice`, a contraction of the
+coefficient tensor) and then do cheap 1-D lookups per sample.
+
+File format (``.npz``): ``values`` (float64, grid shape + optional trailing component dims) and
+``meta`` (a JSON string with ``name``, ``version``, ``axes`` = list of
+``{name, coordinate, lo, hi, n}``, ``components``, ``generator`` settings, ``build_seconds``).
+Extra arrays may sit beside them.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Axis", "Spline", "Table", "load_table", "save_table", "bspline_coefficients"]
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One uniform table axis in table coordinates (``coordinate`` says how it maps to physics)."""
+
+    name: str
+    lo: float
+    hi: float
+    n: int
+    coordinate: str = ""
+
+    @property
+    def step(self) -> float:
+        return (self.hi - self.lo) / (self.n - 1)
+
+    def nodes(self) -> np.ndarray:
+        return np.linspace(self.lo, self.hi, self.n)
+
+
+@functools.cache
+def _solve_matrix(n: int) -> np.ndarray:
+    """Inverse of the (n+2)×(n+2) interpolation system of a uniform cubic B-spline.
+
+    Rows 0..n-1: ``(c_k + 4 c_{k+1} + c_{k+2})/6 = f_k`` (spline value at node k).
+    Two not-a-knot rows: the third derivative, ∝ ``−c_j + 3c_{j+1} − 3c_{j+2} + c_{j+3}`` on
+    segment j, is equal on segments 0 and 1, and on the last two segments.
+    """
+    if n < 4:
+        raise ValueError(f"a cubic table axis needs at least 4 nodes, got {n}")
+    m = np.zeros((n + 2, n + 2))
+    for k in range(n):
+        m[k, k : k + 3] = (1 / 6, 4 / 6, 1 / 6)
+    m[n, 0:5] = (-1, 4, -6, 4, -1)
+    m[n + 1, n - 3 : n + 2] = (-1, 4, -6, 4, -1)
+    return np.linalg.inv(m)
+
+
+def bspline_coefficients(values: np.ndarray, n_axes: int) -> np.ndarray:
+    """B-spline coefficients (each of the first ``n_axes`` dims grows by 2) interpolating ``values``."""
+    c = np.asarray(values, dtype=np.float64)
+    for ax in range(n_axes):
+        n = c.shape[ax]
+        inv = _solve_matrix(n)[:, :n]  # the two not-a-knot right-hand sides are 0
+        c = np.moveaxis(np.tensordot(inv, np.moveaxis(c, ax, 0), axes=(1, 0)), 0, ax)
+    return c
+
+
+def _weights(x, lo: float, step: float, n: int):
+    """Index of the first of 4 coefficients and the 4 cubic B-spline weights at coordinate x."""
+    u = (jnp.clip(x, lo, lo + step * (n - 1)) - lo) / step
+    i = jnp.clip(jnp.floor(u), 0, n - 2)
+    t = u - i
+    t2, t3 = t * t, t * t * t
+    w = jnp.stack(
+        [
+            (1.0 - t) ** 3 / 6.0,
+            (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+            (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+            t3 / 6.0,
+        ],
+        axis=-1,
+    )
+    return i.astype(jnp.int32), w
+
+
+class Spline(eqx.Module):
+    """A tensor-product cubic B-spline over uniform axes (a pytree: coefficients are leaves).
+
+    ``coeffs`` has shape ``(n_0+2, …, n_{d−1}+2, *components)``.
+    """
+
+    coeffs: jax.Array
+    lo: tuple[float, ...] = eqx.field(static=True)
+    step: tuple[float, ...] = eqx.field(static=True)
+    n: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.n)
+
+    def slice(self, *coords) -> Spline:
+        """Fix the leading ``len(coords)`` axes at scalar coordinates; returns a lower-dim Spline.
+
+        The contraction is exact: the result interpolates the same function restricted to the slice.
+        """
+        c = self.coeffs
+        for k, x in enumerate(coords):
+            i, w = _weights(jnp.asarray(x, c.dtype), self.lo[k], self.step[k], self.n[k])
+            block = jax.lax.dynamic_slice_in_dim(c, i, 4, axis=0)
+            c = jnp.tensordot(w.astype(c.dtype), block, axes=(0, 0))
+        m = len(coords)
+        return Spline(c, self.lo[m:], self.step[m:], self.n[m:])
+
+    def __call__(self, *coords):
+        """Evaluate at broadcast coordinates (one array per axis); trailing components appended."""
+        if len(coords) != self.ndim:
+            raise ValueError(f"spline has {self.ndim} axes, got {len(coords)} coordinates")
+        c = self.coeffs
+        coords = jnp.broadcast_arrays(*[jnp.asarray(x, c.dtype) for x in coords])
+        shape = coords[0].shape
+        iw = [
+            _weights(x.reshape(-1), lo, st, n)
+            for x, lo, st, n in zip(coords, self.lo, self.step, self.n, strict=True)
+        ]
+        comp = c.shape[self.ndim :]
+        out = jnp.zeros((coords[0].size, *comp), c.dtype)
+        extra = (None,) * len(comp)
+        for ks in itertools.product(range(4), repeat=self.ndim):
+            idx = tuple(i + k for (i, _), k in zip(iw, ks, strict=True))
+            w = functools.reduce(
+                lambda a, b: a * b, [w[:, k] for (_, w), k in zip(iw, ks, strict=True)]
+            )
+            out = out + w[(...,) + extra] * c[idx]
+        return out.reshape(shape + comp)
+
+
+@dataclass(frozen=True, eq=False)
+class Table:
+    """A loaded table: axes, grid values (NumPy float64), metadata, and its spline per dtype."""
+
+    axes: tuple[Axis, ...]
+    values: np.ndarray
+    meta: dict
+    extras: dict
+
+    @functools.cached_property
+    def coeffs(self) -> np.ndarray:
+        return bspline_coefficients(self.values, len(self.axes))
+
+    def spline(self, dtype=jnp.float64) -> Spline:
+        """The interpolating spline with coefficients in ``dtype`` (float32 or float64)."""
+        dtype = jnp.dtype(dtype)
+        if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+            dtype = jnp.dtype(jnp.float32)
+        return Spline(
+            jnp.asarray(self.coeffs, dtype=dtype),
+            tuple(a.lo for a in self.axes),
+            tuple(a.step for a in self.axes),
+            tuple(a.n for a in self.axes),
+        )
+
+    def __call__(self, *coords):
+        """Evaluate at coordinates (dtype follows the coordinates)."""
+        dtype = jnp.result_type(*coords, jnp.float32)
+        return self.spline(dtype)(*coords)
+
+
+def save_table(
+    path,
+    values,
+    axes,
+    *,
+    name,
+    version,
+    components=(),
+    generator=None,
+    build_seconds=None,
+    extras=None,
+) -> None:
+    """Write a table file (see the module docstring for the format)."""
+    values = np.asarray(values, dtype=np.float64)
+    axes = tuple(axes)
+    if values.shape[: len(axes)] != tuple(a.n for a in axes):
+        raise ValueError(f"values shape {values.shape} does not match axes {[a.n for a in axes]}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"table {name!r} has non-finite values")
+    meta = {
+        "name": name,
+        "version": version,
+        "axes": [a.__dict__ for a in axes],
+        "components": list(components),
+        "generator": generator or {},
+        "build_seconds": build_seconds,
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, values=values, meta=np.array(json.dumps(meta)), **(extras or {}))
+    tmp.replace(path)
+
+
+def read_table(path) -> Table:
+    """Read a table file written by :func:`save_table`."""
+    with np.load(path, allow_pickle=False) as f:
+        meta = json.loads(str(f["meta"]))
+        values = np.array(f["values"])
+        extras = {k: np.array(f[k]) for k in f.files if k not in ("values", "meta")}
+    axes = tuple(Axis(**a) for a in meta["axes"])
+    return Table(axes, values, meta, extras)
+
+
+DATA_DIR = Path(str(resources.files("twoscale") / "data"))
+
+
+@functools.cache
+def load_table(name: str) -> Table:
+    """Load the packaged table ``twoscale/data/<name>.npz`` (cached)."""
+    path = DATA_DIR / f"{name}.npz"
+    if not path.exists():
+        raise FileNotFoundError(
+            f"table {name!r} not found at {path}; rebuild the tables with `python -m tables.build_all`"
+        )
+    return read_table(path)
