@@ -7,7 +7,17 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from twoscale._numerics import safe_sqrt, tiny
+from twoscale._numerics import safe_sqrt
+
+
+def _ratio(num, den, limit):
+    """``num/den`` where ``den > 0``, else ``limit``; double where so the gradient stays finite.
+
+    A zero denominator only happens at grazing with ``η = 1, k = 0`` (index matched), where the
+    reflectance tends to 1.
+    """
+    ok = den > 0.0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), limit)
 
 
 def dielectric(cos_theta, eta):
@@ -29,9 +39,8 @@ def dielectric(cos_theta, eta):
     g2 = eta2 - sin2
     tir = g2 <= 0.0
     g = safe_sqrt(g2)
-    fl = tiny(jnp.result_type(cos_theta, eta))
-    rs = (cos_theta - g) / jnp.maximum(cos_theta + g, fl)
-    rp = (g - eta2 * cos_theta) / jnp.maximum(eta2 * cos_theta + g, fl)
+    rs = _ratio(cos_theta - g, cos_theta + g, -1.0)
+    rp = _ratio(g - eta2 * cos_theta, eta2 * cos_theta + g, 1.0)
     f = 0.5 * (rs * rs + rp * rp)
     # At cos θ = 0 with g > 0 both ratios are exactly −1 and +1: F = 1, no special case needed.
     return jnp.where(tir, 1.0, jnp.clip(f, 0.0, 1.0))
@@ -54,7 +63,6 @@ def conductor(cos_theta, eta, k):
         F in [0, 1].
     """
     cos_theta = jnp.clip(cos_theta, 0.0, 1.0)
-    fl = tiny(jnp.result_type(cos_theta, eta, k))
     cos2 = cos_theta * cos_theta
     sin2 = (1.0 - cos_theta) * (1.0 + cos_theta)
     eta2, k2 = eta * eta, k * k
@@ -64,17 +72,17 @@ def conductor(cos_theta, eta, k):
     # a² and b² without cancellation: the large one from (c0 ± c1)/2, the other from a²b² = η²k².
     pos = c1 >= 0.0
     big = 0.5 * (c0 + jnp.abs(c1))
-    small = ek2 / jnp.maximum(big, fl)
+    small = _ratio(ek2, big, 0.0)
     a2 = jnp.where(pos, big, small)
     b2 = jnp.where(pos, small, big)
     a = safe_sqrt(a2)
     s = a2 + b2
-    rs = (s - 2.0 * a * cos_theta + cos2) / jnp.maximum(s + 2.0 * a * cos_theta + cos2, fl)
+    rs = _ratio(s - 2.0 * a * cos_theta + cos2, s + 2.0 * a * cos_theta + cos2, 1.0)
     # R_p/R_s multiplied by cos²θ above and below: sinθ tanθ cos² = sin²θ cosθ, sin²tan²cos² = sin⁴.
     sin4 = sin2 * sin2
     num = s * cos2 - 2.0 * a * sin2 * cos_theta + sin4
     den = s * cos2 + 2.0 * a * sin2 * cos_theta + sin4
-    rp = rs * num / jnp.maximum(den, fl)
+    rp = rs * _ratio(num, den, 1.0)
     return jnp.clip(0.5 * (rs + rp), 0.0, 1.0)
 
 
