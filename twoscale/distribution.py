@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax.scipy.special import gammaln
 
-from twoscale._numerics import safe_pow, tiny
+from twoscale._numerics import safe_log, tiny
 
 
 def log_d0(beta, p):
@@ -24,17 +24,24 @@ def d0(beta, p):
 
 
 def log_ndf(cos_theta_h, beta, p):
-    """``log D``; ``−inf`` is replaced by a very negative finite number at and below the horizon."""
+    """``log D``; at and below the horizon a finite stand-in far below any representable ``D``."""
     dtype = jnp.result_type(cos_theta_h, beta, p)
     fl = tiny(dtype)
     c = jnp.clip(cos_theta_h, 0.0, 1.0)
-    above = c > fl
-    cs = jnp.where(above, c, 1.0)  # double where: cos = 0 gives log 0 and inf − inf (trap 2)
-    tan2 = (1.0 - cs) * (1.0 + cs) / (cs * cs)
-    expo = safe_pow(
-        tan2 / (beta * beta), p
-    )  # (tan²/β²)^p, 0 with finite gradient at θ = 0 (trap 1)
-    val = log_d0(beta, p) - expo - 4.0 * jnp.log(cs)
+    # Below sqrt(tiny) cos² underflows and D is zero to machine precision for every β ≤ 1:
+    # treat it as the horizon (double where: log 0 and inf − inf would poison gradients, trap 2).
+    above = c > jnp.sqrt(fl)
+    cs = jnp.where(above, c, 1.0)
+    log_c = jnp.log(cs)
+    # log(tan²θ/β²) in logs so that it cannot overflow at grazing for tiny β; safe_log keeps the
+    # normal-incidence value (tan θ = 0) finite with a zero gradient (trap 1).
+    log_x = safe_log((1.0 - cs) * (1.0 + cs)) - 2.0 * log_c - 2.0 * jnp.log(beta)
+    # (tan²θ/β²)^p, capped at 1e4: exp(−1e4)·cos⁻⁴ underflows to 0 anyway, and the cap (a double
+    # where) keeps exp(z) from overflowing to inf and its gradient from becoming 0·inf.
+    z = p * log_x
+    cap = jnp.log(1e4)
+    expo = jnp.exp(jnp.where(z < cap, z, cap))
+    val = log_d0(beta, p) - expo - 4.0 * log_c
     # Below the horizon: log of a value far under any representable D (exp gives exactly 0).
     return jnp.where(above, val, 2.0 * jnp.log(fl))
 
