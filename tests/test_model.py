@@ -1,0 +1,361 @@
+"""The composed two-scale BRDF: physics invariants, reductions, extremes, transformations."""
+
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from scipy.special import erf
+
+from tests.helpers import assert_finite_tree
+from twoscale import geometry, spectral
+from twoscale.config import ModelConfig
+from twoscale.model import albedo, apparatus_factor, brdf, lobes, polarisation_q
+from twoscale.params import TwoScaleParams
+
+
+def _params(material, **kw):
+    base = dict(beta=0.15, p=1.3, sigma_s=0.03, b=1.2, c=2.1, e=0.8)
+    base.update(kw)
+    if material == "conductor":
+        return TwoScaleParams.conductor(eta=[0.2, 0.5, 1.4], k=[3.5, 2.6, 1.9], **base)
+    return getattr(TwoScaleParams, material)(eta=[1.5, 1.52, 1.55], rho_d=[0.6, 0.3, 0.1], **base)
+
+
+def _random_dirs(n, seed, dtype=np.float64):
+    """``n`` random pairs of upper-hemisphere directions (cosine-ish spread, away from grazing)."""
+    rng = np.random.default_rng(seed)
+    t = np.arccos(rng.uniform(0.02, 1.0, (2, n)))
+    ph = rng.uniform(-np.pi, np.pi, (2, n))
+    d = np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t)], -1)
+    return jnp.asarray(d[0], dtype), jnp.asarray(d[1], dtype)
+
+
+CONFIGS = [
+    ModelConfig(material=m, q_mode=q, apparatus=(q == "F"))
+    for m in ("conductor", "plastic", "subsurface")
+    for q in ("2F", "F", "full")
+] + [
+    ModelConfig(shadowing="uncorrelated"),
+    ModelConfig(material="plastic", shadowing="uncorrelated", q_mode="full"),
+    ModelConfig(wavelengths=tuple(spectral.spectral_wavelengths(6))),
+]
+
+
+def _cfg_id(cfg):
+    spec = "spectral" if cfg.is_spectral else "rgb"
+    return f"{cfg.material}-{cfg.q_mode}-{cfg.shadowing}-{'app' if cfg.apparatus else 'noapp'}-{spec}"
+
+
+# ------------------------------------------------------------------------------------ invariants
+@pytest.mark.parametrize("cfg", CONFIGS, ids=_cfg_id)
+def test_nonnegative_reciprocal_isotropic(cfg):
+    """ρ ≥ 0; ρ(i,o) = ρ(o,i) to 1e-10; rotating both directions about z changes nothing.
+
+    Every configuration is reciprocal: each factor depends on (i, o) only through symmetric
+    quantities (θ_h, θ_d, the wrapped |φ_i − φ_o|, products and max/min over {θ_i, θ_o}), and the
+    full Q swaps Q_sp ↔ Q_ps. Two choices make this so and would break it if changed: wrapping φ
+    into [0, π] (the reference's unwrapped φ is not reciprocal) and R at sin θ_d (Eq. 19's θ_i
+    would not be).
+    """
+    params = _params(cfg.material)
+    wi, wo = _random_dirs(64, 1)
+    f = jax.jit(lambda a, b: brdf(params, a, b, cfg))
+    v = np.asarray(f(wi, wo))
+    assert v.shape == (64, cfg.n_channels)
+    assert np.all(np.isfinite(v)) and np.all(v >= 0.0) and np.max(v) > 0.0
+    np.testing.assert_allclose(np.asarray(f(wo, wi)), v, rtol=1e-10, atol=1e-300)
+    a = 0.7
+    rot = jnp.asarray([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]])
+    np.testing.assert_allclose(np.asarray(f(wi @ rot.T, wo @ rot.T)), v, rtol=1e-9)
+
+
+def test_below_horizon_is_zero_with_finite_gradients():
+    params = _params("plastic")
+    cfg = ModelConfig(material="plastic", apparatus=True, q_mode="full")
+    up = geometry.spherical(0.4, 0.0)
+    down = jnp.asarray([0.3, 0.1, -0.5]) / jnp.linalg.norm(jnp.asarray([0.3, 0.1, -0.5]))
+    flat = jnp.asarray([1.0, 0.0, 0.0])
+    pairs = ((up, down), (down, up), (down, down), (flat, up), (up, flat))
+    wi = jnp.stack([a for a, _ in pairs])
+    wo = jnp.stack([b for _, b in pairs])
+    assert np.all(np.asarray(brdf(params, wi, wo, cfg)) == 0.0)
+    g = jax.grad(lambda p: jnp.sum(brdf(p, wi, wo, cfg)))(params)
+    assert_finite_tree(g, "gradient below the horizon")
+    gd = jax.grad(lambda a: jnp.sum(brdf(params, a, wo, cfg)))(wi)
+    assert_finite_tree(gd, "direction gradient below the horizon")
+
+
+# ------------------------------------------------------------------------------------ reductions
+@pytest.mark.parametrize("material", ["conductor", "plastic", "subsurface"])
+def test_sigma_zero_is_exactly_cook_torrance(material):
+    params = _params(material, sigma_s=0.0)
+    wi, wo = _random_dirs(50, 2)
+    on = lobes(params, wi, wo, ModelConfig(material=material))
+    off = lobes(params, wi, wo, ModelConfig(material=material, diffraction=False))
+    assert np.all(np.asarray(on["diffraction"]) == 0.0)
+    np.testing.assert_array_equal(np.asarray(on["specular"]), np.asarray(off["specular"]))
+    g = jax.grad(lambda p: jnp.sum(brdf(p, wi, wo, ModelConfig(material=material))))(params)
+    assert_finite_tree(g, "gradient at σ_s = 0")
+
+
+def _textbook_beckmann_conductor(wi, wo, alpha, eta, k):
+    """Independent reference: Beckmann D, Smith G1 (erf closed form), complex Fresnel (NumPy)."""
+    wi, wo = np.asarray(wi), np.asarray(wo)
+    h = wi + wo
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    ci, co, ch = wi[:, 2], wo[:, 2], h[:, 2]
+    cd = np.sum(wi * h, -1)
+    tan2 = (1 - ch**2) / ch**2
+    d = np.exp(-tan2 / alpha**2) / (np.pi * alpha**2 * ch**4)
+
+    def g1(c):
+        mu = c / (alpha * np.sqrt(1 - c**2))
+        return 2.0 / (1.0 + erf(mu) + np.exp(-(mu**2)) / (mu * np.sqrt(np.pi)))
+
+    n = np.asarray(eta) + 1j * np.asarray(k)
+    cdc = cd[:, None]
+    ct = np.sqrt(n**2 - (1 - cdc**2) + 0j) / n
+    rs = (cdc - n * ct) / (cdc + n * ct)
+    rp = (n * cdc - ct) / (n * cdc + ct)
+    f = 0.5 * (abs(rs) ** 2 + abs(rp) ** 2)
+    return f * (d * g1(ci) * g1(co) / (4 * ci * co))[:, None]
+
+
+@pytest.mark.parametrize("path,rtol", [("exact", 1e-8), ("tables", 2e-5)])
+def test_p1_uncorrelated_equals_textbook_beckmann(path, rtol):
+    alpha, eta, k = 0.25, [0.2, 0.5, 1.4], [3.5, 2.6, 1.9]
+    params = TwoScaleParams.conductor(alpha, 1.0, eta, k)
+    cfg = ModelConfig(diffraction=False, shadowing="uncorrelated", path=path)
+    wi, wo = _random_dirs(200, 3)
+    got = np.asarray(brdf(params, wi, wo, cfg))
+    np.testing.assert_allclose(got, _textbook_beckmann_conductor(wi, wo, alpha, eta, k), rtol=rtol)
+
+
+def test_full_q_at_normal_specular_is_2f():
+    from twoscale import fresnel
+
+    eta, k = jnp.asarray([0.2, 1.5, 2.0]), jnp.asarray([3.5, 0.0, 1.0])
+    q = polarisation_q(1.0, 1.0, 0.3, eta, k)
+    np.testing.assert_allclose(q, 2.0 * fresnel.conductor(1.0, eta, k), rtol=1e-12)
+
+
+def test_apparatus_factor():
+    np.testing.assert_allclose(apparatus_factor(1.0, 2.0), 1.0)
+    theta = 1.0
+    np.testing.assert_allclose(
+        apparatus_factor(math.cos(theta), 1.7), (1 - (2 * theta / math.pi) ** 2) ** 1.7, rtol=1e-12
+    )
+    assert float(apparatus_factor(0.0, 1.0)) == 0.0
+
+
+# ------------------------------------------------------------------------------------ albedo
+def _dense_albedo(params, cos_i, cfg, n=800):
+    """Brute-force reference: midpoint rule on a fine (θ_o, φ_o) grid with nodes packed near
+    the specular direction by a sinh map (used for rough and moderately narrow lobes)."""
+    ti = math.acos(cos_i)
+    # θ_o ∈ [0, π/2] with nodes concentrated around θ_i; φ ∈ [0, π] concentrated at π.
+    s = np.sinh(np.linspace(np.arcsinh(-ti / 0.01), np.arcsinh((np.pi / 2 - ti) / 0.01), n + 1))
+    to_edges = ti + 0.01 * s
+    to = 0.5 * (to_edges[1:] + to_edges[:-1])
+    dto = np.diff(to_edges)
+    sp = np.sinh(np.linspace(np.arcsinh(-np.pi / 0.01), 0.0, n + 1))
+    ph_edges = np.pi + 0.01 * sp
+    ph = 0.5 * (ph_edges[1:] + ph_edges[:-1])
+    dph = np.diff(ph_edges)
+    wi = jnp.asarray([math.sin(ti), 0.0, cos_i])
+    total = 0.0
+    for j in range(0, n, 200):  # chunks keep memory small
+        T, P = np.meshgrid(to[j : j + 200], ph, indexing="ij")
+        wo = jnp.asarray(np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1))
+        rho = np.asarray(brdf(params, wi, wo, cfg))
+        w = (np.cos(T) * np.sin(T) * dto[j : j + 200, None] * dph[None, :])[..., None]
+        total = total + 2.0 * np.sum(rho * w, axis=(0, 1))
+    return total
+
+
+@pytest.mark.parametrize(
+    "material,beta,cos_i",
+    [("conductor", 0.3, 0.8), ("conductor", 0.05, 0.5), ("plastic", 0.2, 0.3)],
+)
+def test_albedo_quadrature(material, beta, cos_i):
+    """The half-vector quadrature agrees with a dense brute-force sum (documented accuracy)."""
+    cfg = ModelConfig(material=material, q_mode="F")
+    params = _params(material, beta=beta, b=0.8)
+    got = np.asarray(albedo(params, cos_i, cfg))
+    ref = _dense_albedo(params, cos_i, cfg)
+    np.testing.assert_allclose(got, ref, rtol=2e-3)
+    finer = np.asarray(albedo(params, cos_i, cfg, n_theta=16, n_phi=64))
+    np.testing.assert_allclose(got, finer, rtol=1e-4)
+
+
+def test_albedo_conservation_q_f_and_excess_q_2f(capsys):
+    """With Q = F the directional albedo stays ≤ 1 over a grid of parameters; with Q = 2F (the
+    reference) the diffraction lobe may add up to F(1 − A_s): the excess is computed and printed."""
+    grid = list(
+        itertools.product(
+            ("conductor", "plastic"), (0.01, 0.1, 0.5), (0.5, 1.0, 3.0), (0.02, 0.1), (0.1, 1.0, 10.0)
+        )
+    )
+    cos_i = jnp.asarray([1.0, 0.7, 0.3, 0.05])
+    worst = {}
+    for q_mode in ("F", "2F"):
+        for material in ("conductor", "plastic"):
+            cfg = ModelConfig(material=material, q_mode=q_mode)
+            sets = [g for g in grid if g[0] == material]
+            if material == "conductor":  # near-perfect mirror: F ≈ 0.99, the worst case
+                mk = [TwoScaleParams.conductor(b_, p_, 0.05, 8.0, s_, bb, 1.5) for _, b_, p_, s_, bb in sets]
+            else:
+                mk = [
+                    TwoScaleParams.plastic(b_, p_, 1.5, 0.95, s_, bb, 1.5) for _, b_, p_, s_, bb in sets
+                ]
+            batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *mk)
+            a = np.asarray(jax.lax.map(lambda p, cfg=cfg: albedo(p, cos_i, cfg), batch, batch_size=9))
+            assert np.all(np.isfinite(a))
+            worst[q_mode, material] = float(a.max())
+    excess = {k: v - 1.0 for k, v in worst.items()}
+    with capsys.disabled():
+        print("\nmax directional albedo over the grid:", {f"{q}/{m}": round(v, 4) for (q, m), v in worst.items()})
+    assert worst["F", "conductor"] <= 1.0 + 2e-3 and worst["F", "plastic"] <= 1.0 + 2e-3
+    assert excess["2F", "conductor"] > excess["F", "conductor"]  # computed, not hidden
+
+
+# ------------------------------------------------------------------------------------ extremes
+EXTREME_DIRS = [
+    ((1.0, 0.0), (1.0, 0.0)),  # normal incidence, i = o
+    ((1e-7, 0.0), (1e-7, math.pi)),  # both grazing, mirror configuration
+    ((1e-7, 0.0), (1e-7, 0.0)),  # both grazing, i = o
+    ((1e-7, 0.0), (0.9, 2.0)),
+    ((0.6, 1.0), (0.6, 1.0)),  # i = o off normal
+    ((0.5, 0.0), (0.5, math.pi)),  # specular
+    ((0.3, 0.0), (1.0, 0.0)),
+    ((0.0, 0.0), (0.7, 1.0)),  # on the horizon
+]
+
+
+def _dirs(cases, dtype):
+    def one(c, ph):
+        s = math.sqrt(max(0.0, 1.0 - c * c))
+        return [s * math.cos(ph), s * math.sin(ph), c]
+
+    wi = jnp.asarray([one(*a) for a, _ in cases], dtype)
+    wo = jnp.asarray([one(*b) for _, b in cases], dtype)
+    return wi, wo
+
+
+def _extreme_batch(material):
+    """Every corner of β ∈ {1e-3, 1}, p ∈ {0.2, 5}, c ∈ {1.01, 5}, σ_s ∈ {0, 1}, b ∈ {0.01, 100}."""
+    corners = list(itertools.product((1e-3, 1.0), (0.2, 5.0), (1.01, 5.0), (0.0, 1.0), (0.01, 100.0)))
+    sets = []
+    for beta, p, c, s, b in corners:
+        if material == "conductor":
+            sets.append(TwoScaleParams.conductor(beta, p, [0.01, 1.5, 6.0], [10.0, 0.0, 0.0], s, b, c, 5.0))
+        else:
+            sets.append(getattr(TwoScaleParams, material)(beta, p, [1.0, 1.5, 4.0], [0.0, 0.5, 1.0], s, b, c, 0.0))
+    return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        ModelConfig(apparatus=True),
+        ModelConfig(q_mode="full", shadowing="uncorrelated"),
+        ModelConfig(material="plastic", apparatus=True),
+        ModelConfig(material="subsurface", q_mode="full"),
+    ],
+    ids=_cfg_id,
+)
+def test_extremes_values_and_gradients_finite(cfg, dtype):
+    batch = _extreme_batch(cfg.material).astype(dtype)
+    wi, wo = _dirs(EXTREME_DIRS, dtype)
+
+    def total(p):
+        return jnp.sum(brdf(p, wi, wo, cfg))
+
+    vals = jax.jit(jax.vmap(lambda p: brdf(p, wi, wo, cfg)))(batch)
+    assert vals.dtype == dtype
+    assert np.all(np.isfinite(np.asarray(vals))) and np.all(np.asarray(vals) >= 0.0)
+    grads = jax.jit(jax.vmap(jax.grad(total)))(batch)
+    assert_finite_tree(grads, f"gradient ({jnp.dtype(dtype).name})")
+    gdir = jax.jit(jax.vmap(jax.grad(lambda a, p: jnp.sum(brdf(p, a, wo, cfg))), (None, 0)))(wi, batch)
+    assert_finite_tree(gdir, "direction gradient")
+
+
+# ------------------------------------------------------------------------------------ gradients
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        ModelConfig(apparatus=True),
+        ModelConfig(q_mode="full"),
+        ModelConfig(material="plastic", apparatus=True),
+        ModelConfig(material="subsurface", shadowing="uncorrelated"),
+    ],
+    ids=_cfg_id,
+)
+def test_check_grads_every_parameter(cfg):
+    params = _params(cfg.material).for_config(cfg)
+    wi, wo = _random_dirs(6, 4)
+    names = list(params.fields())
+
+    def f(*leaves):
+        return brdf(params.replace(**dict(zip(names, leaves, strict=True))), wi, wo, cfg)
+
+    leaves = [getattr(params, n) for n in names]
+    check_grads(f, leaves, order=1, modes=("fwd", "rev"), eps=1e-6, rtol=1e-5, atol=1e-8)
+
+
+# ------------------------------------------------------------------------------------ transformations
+def test_jit_equals_eager_and_vmap_equals_loop():
+    cfg = ModelConfig(material="plastic", q_mode="full")
+    wi, wo = _random_dirs(20, 5)
+    sets = [_params("plastic", beta=b_, sigma_s=s_) for b_, s_ in ((0.05, 0.01), (0.3, 0.05), (0.8, 0.0))]
+    with jax.disable_jit():
+        eager = [np.asarray(brdf(p, wi, wo, cfg)) for p in sets]
+    for p, e in zip(sets, eager, strict=True):
+        np.testing.assert_allclose(np.asarray(brdf(p, wi, wo, cfg)), e, rtol=1e-12)
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
+    vm = np.asarray(jax.vmap(lambda p: brdf(p, wi, wo, cfg))(batch))
+    np.testing.assert_allclose(vm, np.stack(eager), rtol=1e-12)
+
+
+def test_float32_in_float32_out_and_broadcasting():
+    params = _params("conductor").astype(jnp.float32)
+    wi, wo = _random_dirs(12, 6, np.float32)
+    out = brdf(params, wi[:, None, :], wo[None, :4, :])
+    assert out.dtype == jnp.float32 and out.shape == (12, 4, 3)
+    ref = brdf(_params("conductor"), wi[:, None, :].astype(jnp.float64), wo[None, :4, :].astype(jnp.float64))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=2e-3)
+
+
+def test_lobes_switched_off_need_no_parameters():
+    params = TwoScaleParams.plastic(0.2, 1.0, 1.5, [0.5, 0.4, 0.3])  # no σ_s, b, c
+    wi, wo = _random_dirs(8, 7)
+    cfg = ModelConfig(material="plastic", diffraction=False)
+    parts = lobes(params, wi, wo, cfg)
+    assert set(parts) == {"specular", "diffuse"}
+    np.testing.assert_allclose(sum(parts.values()), brdf(params, wi, wo, cfg), rtol=1e-14)
+    with pytest.raises(ValueError, match="sigma_s"):
+        brdf(params, wi, wo, ModelConfig(material="plastic"))
+    only = ModelConfig(material="plastic", specular=False, diffraction=False)
+    assert set(lobes(TwoScaleParams(eta=1.5, rho_d=0.5), wi, wo, only)) == {"diffuse"}
+
+
+# ------------------------------------------------------------------------------------ spectral
+def test_spectral_gold_is_goldish():
+    wl = tuple(spectral.spectral_wavelengths(16))
+    eta, k = spectral.preset("gold", wl)
+    params = TwoScaleParams.conductor(0.1, 1.0, eta, k, sigma_s=0.01, b=1.0, c=2.0)
+    cfg = ModelConfig(wavelengths=wl)
+    n = jnp.asarray([0.0, 0.0, 1.0])
+    rgb = np.asarray(brdf(params, n, n, cfg))
+    assert rgb.shape == (3,) and rgb[0] > rgb[1] > rgb[2] > 0.0
+    spec = brdf(params, n, n, ModelConfig(wavelengths=wl, spectral_output="spectrum"))
+    assert spec.shape == (16,)
+    # RGB parameters upsampled to the spectral wavelengths give a similar colour.
+    eta3, k3 = spectral.preset_rgb("gold")
+    up = np.asarray(brdf(TwoScaleParams.conductor(0.1, 1.0, eta3, k3, 0.01, 1.0, 2.0), n, n, cfg))
+    assert up[0] > up[1] > up[2]

@@ -1,0 +1,187 @@
+"""Baseline BRDFs for comparison fits: Cook-Torrance (GGX or Beckmann) + Lambert.
+
+``ρ(i, o) = ρ_d/π + F(θ_d) D(h) G(i, o) / (4 cos θ_i cos θ_o)``, per RGB channel, with
+
+- ``F = F0 + (1 − F0)(1 − cos θ_d)^5`` (Schlick 1994), ``F0`` per channel in (0, 1);
+- ``D``: GGX / Trowbridge-Reitz ``α² / (π cos⁴θ_h (α² + tan²θ_h)²)`` (Walter et al. 2007), or
+  Beckmann ``exp(−tan²θ_h/α²) / (π α² cos⁴θ_h)``; one roughness ``α`` shared by the channels;
+- ``G = 1/(1 + Λ(θ_i) + Λ(θ_o))``, the height-correlated Smith term (Heitz 2014, Eq. 99) with the
+  distribution's own ``Λ``: GGX ``(√(1 + α² tan²θ) − 1)/2``, Beckmann
+  ``(erf μ − 1)/2 + e^{−μ²}/(2μ√π)``, ``μ = 1/(α tan θ)``.
+
+Seven parameters (α, F0 ×3, ρ_d ×3), the usual "microfacet + Lambert" model that a measured BRDF is
+compared against. The fitting driver (:mod:`twoscale.fit`) fits it with the same metric and
+schedule as the two-scale model: pass ``config=CookTorranceConfig("ggx")``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import erfc
+
+from twoscale._numerics import safe_sqrt, tiny
+
+__all__ = [
+    "CookTorranceConfig",
+    "CookTorranceParams",
+    "cook_torrance",
+    "ALPHA_RANGE",
+]
+
+#: Roughness range kept by the reparametrisation (log-scaled sigmoid).
+ALPHA_RANGE = (1e-3, 2.0)
+_DISTRIBUTIONS = ("ggx", "beckmann")
+
+
+@dataclasses.dataclass(frozen=True)
+class CookTorranceConfig:
+    """Static configuration of the baseline: the microfacet distribution, ``"ggx"`` or ``"beckmann"``."""
+
+    distribution: str = "ggx"
+
+    def __post_init__(self):
+        if self.distribution not in _DISTRIBUTIONS:
+            raise ValueError(
+                f"distribution must be one of {_DISTRIBUTIONS}, got {self.distribution!r}"
+            )
+
+    @property
+    def name(self) -> str:
+        return f"cook-torrance-{self.distribution}"
+
+    @property
+    def n_channels(self) -> int:
+        return 3
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return ("alpha", "f0", "rho_d")
+
+    def to_dict(self) -> dict:
+        return {"distribution": self.distribution}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CookTorranceConfig:
+        return cls(distribution=d.get("distribution", "ggx"))
+
+
+def _sigmoid(u):
+    return jax.nn.sigmoid(u)
+
+
+def _logit(x):
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+class CookTorranceParams(eqx.Module):
+    """Parameters of the Cook-Torrance + Lambert baseline (physical units).
+
+    | field | symbol | unit | range |
+    | --- | --- | --- | --- |
+    | ``alpha`` | α | — | [1e-3, 2] (shape ()) |
+    | ``f0`` | F0 | — | (0, 1) per channel (3,) |
+    | ``rho_d`` | ρ_d | — | (0, 1) per channel (3,) |
+    """
+
+    alpha: jax.Array
+    f0: jax.Array
+    rho_d: jax.Array
+
+    def __init__(self, alpha, f0, rho_d):
+        self.alpha = jnp.asarray(alpha, dtype=jnp.result_type(float))
+        self.f0 = jnp.broadcast_to(jnp.asarray(f0, dtype=jnp.result_type(float)), (3,))
+        self.rho_d = jnp.broadcast_to(jnp.asarray(rho_d, dtype=jnp.result_type(float)), (3,))
+
+    def to_unconstrained(self) -> CookTorranceParams:
+        """Map to unconstrained values: α by a log-scaled logit, F0 and ρ_d by logit."""
+        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
+        t = (jnp.log(self.alpha) - lo) / (hi - lo)
+        eps = 1e-12  # keep the logit finite for values on the boundary
+        return CookTorranceParams(
+            _logit(jnp.clip(t, eps, 1 - eps)),
+            _logit(jnp.clip(self.f0, eps, 1 - eps)),
+            _logit(jnp.clip(self.rho_d, eps, 1 - eps)),
+        )
+
+    @staticmethod
+    def from_unconstrained(u: CookTorranceParams) -> CookTorranceParams:
+        """Inverse of :meth:`to_unconstrained`; every real input maps inside the valid range."""
+        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
+        alpha = jnp.exp(lo + (hi - lo) * _sigmoid(u.alpha))
+        return CookTorranceParams(alpha, _sigmoid(u.f0), _sigmoid(u.rho_d))
+
+    def to_dict(self) -> dict:
+        return {
+            "alpha": float(self.alpha),
+            "f0": [float(x) for x in self.f0],
+            "rho_d": [float(x) for x in self.rho_d],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CookTorranceParams:
+        return cls(d["alpha"], d["f0"], d["rho_d"])
+
+
+def _lambda_ggx(tan2, alpha):
+    """Smith Λ of GGX: ``(√(1 + α² tan²θ) − 1)/2`` written without cancellation."""
+    x = alpha * alpha * tan2
+    return 0.5 * x / (1.0 + jnp.sqrt(1.0 + x))
+
+
+def _lambda_beckmann(tan2, alpha):
+    """Smith Λ of Beckmann, ``μ = 1/(α tanθ)``: ``−erfc(μ)/2 + e^{−μ²}/(2μ√π)``; 0 at normal incidence."""
+    fl = tiny(jnp.result_type(tan2, alpha))
+    t = alpha * safe_sqrt(tan2)
+    pos = t > fl
+    mu = 1.0 / jnp.where(pos, t, 1.0)  # double where: μ = ∞ at θ = 0, where Λ = 0 exactly
+    lam = -0.5 * erfc(mu) + jnp.exp(-mu * mu) / (2.0 * mu * math.sqrt(math.pi))
+    return jnp.where(pos, lam, 0.0)
+
+
+def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig()):
+    """Evaluate the Cook-Torrance + Lambert baseline (BRDF without the cosine, 1/sr).
+
+    Args:
+        params: :class:`CookTorranceParams`.
+        wi, wo: unit directions ``(..., 3)`` pointing away from the surface (normal = z).
+        config: :class:`CookTorranceConfig` (the distribution).
+    Returns:
+        ``(..., 3)``; 0 where either direction is at or below the horizon.
+    """
+    wi = jnp.asarray(wi)
+    wo = jnp.asarray(wo)
+    dtype = jnp.result_type(wi, wo, params.alpha)
+    fl = tiny(dtype)
+    cos_i = wi[..., 2]
+    cos_o = wo[..., 2]
+    above = (cos_i > 0.0) & (cos_o > 0.0)
+    ci = jnp.where(above, cos_i, 1.0)  # double where: the lobe divides by the cosines
+    co = jnp.where(above, cos_o, 1.0)
+    hv = wi + wo
+    hn = jnp.sqrt(jnp.maximum(jnp.sum(hv * hv, axis=-1, keepdims=True), fl))
+    h = hv / hn
+    cos_h = jnp.clip(h[..., 2], fl, 1.0)
+    cos_d = jnp.clip(jnp.sum(wi * h, axis=-1), 0.0, 1.0)
+    alpha = params.alpha
+    a2 = alpha * alpha
+    tan2_h = (1.0 - cos_h) * (1.0 + cos_h) / (cos_h * cos_h)
+    tan2_i = (1.0 - ci) * (1.0 + ci) / (ci * ci)
+    tan2_o = (1.0 - co) * (1.0 + co) / (co * co)
+    cos4_h = (cos_h * cos_h) ** 2
+    if config.distribution == "ggx":
+        d = a2 / (jnp.pi * cos4_h * (a2 + tan2_h) ** 2)
+        lam_i, lam_o = _lambda_ggx(tan2_i, alpha), _lambda_ggx(tan2_o, alpha)
+    else:
+        d = jnp.exp(-tan2_h / a2) / (jnp.pi * a2 * cos4_h)
+        lam_i, lam_o = _lambda_beckmann(tan2_i, alpha), _lambda_beckmann(tan2_o, alpha)
+    g = 1.0 / (1.0 + lam_i + lam_o)
+    spec = d * g / (4.0 * ci * co)
+    schlick = (1.0 - cos_d) ** 5
+    f = params.f0 + (1.0 - params.f0) * schlick[..., None]
+    rho = params.rho_d / jnp.pi + f * spec[..., None]
+    return jnp.where(above[..., None], rho, 0.0)

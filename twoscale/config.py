@@ -1,0 +1,140 @@
+"""Static model configuration: which material, which lobes, which approximations [MODEL.md §2-3].
+
+A :class:`ModelConfig` is frozen and hashable, so it can be a static argument of ``jax.jit``; every
+field is checked when it is built and a bad value raises a ``ValueError`` naming the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from twoscale.spectral import RGB_WAVELENGTHS
+
+__all__ = ["ModelConfig", "MATERIALS", "PARAM_ORDER"]
+
+MATERIALS = ("conductor", "plastic", "subsurface")
+Q_MODES = ("2F", "F", "full")
+SHADOWING = ("correlated", "uncorrelated")
+PATHS = ("tables", "exact")
+SPECTRAL_OUTPUTS = ("rgb", "spectrum")
+
+# Canonical order of the parameters (as in the paper's list, §4, plus the apparatus exponent).
+PARAM_ORDER = ("beta", "p", "sigma_s", "b", "c", "eta", "k", "rho_d", "e")
+
+
+def _choice(name: str, value, options) -> None:
+    if value not in options:
+        raise ValueError(f"ModelConfig.{name} = {value!r}: expected one of {list(options)}")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """What the two-scale BRDF evaluates (static; hashable; validated at construction).
+
+    Fields:
+        material: ``"conductor"`` (complex index η + ik, no diffuse layer), ``"plastic"`` (varnish
+            over a diffuse layer) or ``"subsurface"`` (§3.9). Default ``"conductor"``.
+        specular: the rough-specular (Cook-Torrance) lobe scaled by ``A_s`` (§2, line 2).
+        diffraction: the diffraction lobe ``(1 − A_s) Q G (S*D)`` (§2, line 3). Off ⇒ ``A_s = 1``
+            and the nano-scale parameters ``sigma_s, b, c`` are not used.
+        diffuse: the diffuse layer of dielectrics (ignored for conductors).
+        q_mode: polarisation factor of the diffraction lobe: ``"2F"`` (reference), ``"F"``
+            (energy-conserving switch) or ``"full"`` (§3.7).
+        shadowing: ``"correlated"`` (height-direction correlated Smith with van Ginneken's factor,
+            φ wrapped into [0, π]; reference) or ``"uncorrelated"`` (``G1(i) G1(o)``).
+        apparatus: multiply the specular lobe by MERL's ``L(θ_i) L(θ_o)`` (§3.11); adds ``e``.
+        path: ``"tables"`` (precomputed C² spline tables; fast) or ``"exact"`` (quadrature).
+        wavelengths: wavelengths in µm at which the model is evaluated; the default is the three
+            RGB wavelengths (0.645, 0.526, 0.444), one per output channel.
+        spectral_output: with any other wavelengths, ``"rgb"`` (default) integrates the spectrum
+            to linear sRGB (CIE 1931 observer under ``illuminant``); ``"spectrum"`` returns one
+            channel per wavelength.
+        illuminant: illuminant of the spectral → RGB conversion (see ``twoscale.spectral``).
+    """
+
+    material: str = "conductor"
+    specular: bool = True
+    diffraction: bool = True
+    diffuse: bool = True
+    q_mode: str = "2F"
+    shadowing: str = "correlated"
+    apparatus: bool = False
+    path: str = "tables"
+    wavelengths: tuple[float, ...] = field(default=RGB_WAVELENGTHS)
+    spectral_output: str = "rgb"
+    illuminant: str = "D65"
+
+    def __post_init__(self):
+        _choice("material", self.material, MATERIALS)
+        _choice("q_mode", self.q_mode, Q_MODES)
+        _choice("shadowing", self.shadowing, SHADOWING)
+        _choice("path", self.path, PATHS)
+        _choice("spectral_output", self.spectral_output, SPECTRAL_OUTPUTS)
+        for name in ("specular", "diffraction", "diffuse", "apparatus"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ModelConfig.{name} = {getattr(self, name)!r}: expected a bool")
+        if not isinstance(self.illuminant, str):
+            raise ValueError(f"ModelConfig.illuminant = {self.illuminant!r}: expected a name")
+        try:
+            wl = tuple(float(w) for w in self.wavelengths)
+        except TypeError as err:
+            raise ValueError(
+                f"ModelConfig.wavelengths = {self.wavelengths!r}: expected a sequence of floats (µm)"
+            ) from err
+        if not wl or not all(0.2 <= w <= 2.0 for w in wl):
+            raise ValueError(
+                f"ModelConfig.wavelengths = {wl}: expected one or more wavelengths in µm within [0.2, 2]"
+            )
+        if wl != tuple(RGB_WAVELENGTHS) and any(b <= a for a, b in zip(wl, wl[1:], strict=False)):
+            raise ValueError(
+                f"ModelConfig.wavelengths = {wl}: spectral wavelengths must be strictly increasing "
+                f"(only the RGB default {tuple(RGB_WAVELENGTHS)} runs R, G, B)"
+            )
+        object.__setattr__(self, "wavelengths", wl)  # normalise to a hashable tuple of floats
+        if not (self.specular or self.diffraction or self.has_diffuse):
+            raise ValueError(
+                "ModelConfig: every lobe is switched off (specular, diffraction and, for dielectrics, "
+                "diffuse); switch at least one on"
+            )
+
+    @property
+    def is_conductor(self) -> bool:
+        return self.material == "conductor"
+
+    @property
+    def has_diffuse(self) -> bool:
+        """The diffuse layer is evaluated (dielectrics with ``diffuse=True``)."""
+        return self.diffuse and not self.is_conductor
+
+    @property
+    def is_spectral(self) -> bool:
+        """The wavelengths are not the three RGB ones: the model is evaluated spectrally."""
+        return self.wavelengths != tuple(RGB_WAVELENGTHS)
+
+    @property
+    def n_wavelengths(self) -> int:
+        return len(self.wavelengths)
+
+    @property
+    def n_channels(self) -> int:
+        """Channels returned by ``brdf``: 3 (RGB, or spectral → RGB), or one per wavelength."""
+        if self.is_spectral and self.spectral_output == "rgb":
+            return 3
+        return self.n_wavelengths
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the parameters this configuration uses (in :data:`PARAM_ORDER`)."""
+        used = set()
+        if self.specular or self.diffraction:
+            used |= {"beta", "p"}
+        if self.diffraction:
+            used |= {"sigma_s", "b", "c"}
+        used.add("eta")
+        if self.is_conductor:
+            used.add("k")
+        if self.has_diffuse:
+            used.add("rho_d")
+        if self.apparatus and self.specular:
+            used.add("e")
+        return tuple(n for n in PARAM_ORDER if n in used)
