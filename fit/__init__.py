@@ -1,0 +1,1 @@
+"""Fitting campaigns over many materials (scripts; run from the repository root)."""

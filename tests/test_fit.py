@@ -1,0 +1,228 @@
+"""The fitting driver: residual machinery, starts, standard errors, records, parameter recovery.
+
+Recovery: synthetic MERL tables made by the model itself (conductor and plastic, several parameter
+sets), noise-free or with 1 % multiplicative noise and the realistic invalid mask (≈ 24 % invalid
+cells). The fit from the default starts must recover the parameters (2 % noise-free; within a few
+reported standard errors with noise) and bring the RMSE down to the noise level. Most cases use the
+preview schedule (subsamples of 4 096 and 32 768 cells) to bound the CI cost; one uses the full grid.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from twoscale.baselines import CookTorranceConfig, CookTorranceParams
+from twoscale.fit import Stage, fit, load_result, synthetic
+from twoscale.fit.adapters import adapter_for
+from twoscale.fit.residuals import (
+    Cells,
+    Layout,
+    Problem,
+    compressed_residuals,
+    normal_equations,
+    pack,
+    pair_cells,
+    select_cells,
+)
+from twoscale.fit.starts import data_stats
+
+CT = CookTorranceConfig("ggx")
+CT_TRUE = CookTorranceParams(0.15, [0.9, 0.7, 0.4], [0.02, 0.05, 0.1])
+
+
+@pytest.fixture(scope="module")
+def ct_clean():
+    return synthetic(CT_TRUE, CT, noise=0.0, seed=1)
+
+
+@pytest.fixture(scope="module")
+def ct_noisy():
+    return synthetic(CT_TRUE, CT, noise=0.01, seed=2)
+
+
+def _leaves_close(a, b, rtol):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol)
+
+
+# ------------------------------------------------------------------------------------ machinery
+def test_synthetic_mask_is_realistic(ct_clean):
+    assert 0.755 <= ct_clean.valid_fraction <= 0.762  # MERL files: 0.758
+    assert np.all(ct_clean.values[~ct_clean.valid] == 0.0)
+
+
+def test_select_cells_horizon_and_angle_cut(ct_clean):
+    sel = select_cells(ct_clean)
+    assert len(sel.valid) == len(sel.fit) == int(ct_clean.valid.sum())
+    assert np.all(sel.valid.wi[:, 2] > 0) and np.all(sel.valid.wo[:, 2] > 0)
+    cut = select_cells(ct_clean, max_theta_deg=60)
+    cmin = math.cos(math.radians(60))
+    assert len(cut.valid) == len(sel.valid) > len(cut.fit) > 0
+    assert np.all(cut.fit.wi[:, 2] >= cmin - 1e-12) and np.all(cut.fit.wo[:, 2] >= cmin - 1e-12)
+    with pytest.raises(ValueError, match="max_theta"):
+        select_cells(ct_clean, max_theta_deg=0)
+
+
+def test_select_cells_all_invalid():
+    from twoscale import merl
+
+    empty = merl.MerlData(np.zeros((90, 90, 180, 3)), np.zeros((90, 90, 180), bool))
+    with pytest.raises(ValueError, match="no valid cell"):
+        select_cells(empty)
+
+
+def test_compressed_problem_matches_full_residuals(ct_noisy):
+    """|r̃|² = |r|², J̃ᵀJ̃ = JᵀJ and J̃ᵀr̃ = Jᵀr, against jacfwd of the plain residual vector."""
+    sel = select_cells(ct_noisy)
+    rng = np.random.default_rng(0)
+    cells = sel.fit.take(rng.choice(len(sel.fit), 3000, replace=False))
+    adapter = adapter_for(CT)
+    p0 = CookTorranceParams(0.1, [0.5, 0.5, 0.5], [0.1, 0.1, 0.1])
+    spec = jax.tree_util.tree_map(lambda _: True, p0)
+    spec = eqx.tree_at(lambda s: s.rho_d, spec, False)  # one frozen field
+    free, frozen = eqx.partition(p0.to_unconstrained(), spec)
+    layout = Layout.of(free)
+    assert layout.size == 4
+    y = layout.ravel(free)
+    np.testing.assert_array_equal(layout.ravel(layout.unravel(y)), y)
+    for metric in ("log", "linear"):
+        problem = Problem(adapter, layout, metric)
+        data, n_active = pack(pair_cells(cells), n_chunks=2, chunk=2048)
+
+        def full(yy, problem=problem, metric=metric):
+            p = problem.params(yy, frozen)
+            pred = adapter.evaluate(p, cells.wi, cells.wo)
+            cos = cells.cos_i[:, None]
+            if metric == "log":
+                return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
+            return ((pred - cells.rho) * cos).reshape(-1)
+
+        r = full(y)
+        jac = jax.jacfwd(full)(y)
+        jtj, jtr, rr = normal_equations(problem, y, frozen, data, n_active)
+        np.testing.assert_allclose(rr, r @ r, rtol=1e-10)
+        np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-8, atol=1e-12 * np.abs(jtj).max())
+        np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-8, atol=1e-12 * np.abs(jtr).max())
+        r_c, lin = jax.linearize(lambda yy, pb=problem, d=data, n=n_active: compressed_residuals(pb, yy, frozen, d, n), y)
+        j_c = jax.vmap(lin)(jnp.eye(4)).T
+        np.testing.assert_allclose(r_c @ r_c, r @ r, rtol=1e-10)
+        np.testing.assert_allclose(j_c.T @ j_c, jac.T @ jac, rtol=1e-8, atol=1e-12 * np.abs(jtj).max())
+        np.testing.assert_allclose(j_c.T @ r_c, jac.T @ r, rtol=1e-7, atol=1e-12 * np.abs(jtr).max())
+
+
+def test_reciprocal_pairs(ct_clean):
+    """Cells φ_d = k and 180 − k share one pair; the pair's directions are the first member's."""
+    from twoscale import merl
+
+    sel = select_cells(ct_clean)
+    pairs = pair_cells(sel.fit)
+    assert pairs.n_cells == len(sel.fit)
+    assert len(pairs) < 0.52 * len(sel.fit)  # nearly every cell has its partner
+    # Members: cos θ_i of the second member is cos θ_o of the first; values match the table.
+    k = np.arange(len(pairs))[:: max(1, len(pairs) // 500)]
+    for j in k:
+        both = pairs.w[j] == 1
+        assert np.all(pairs.cos[j] > 0) and both.any()
+    # A pair's model value is the value at either member's own directions (reciprocity).
+    th, td, pd = merl.bin_to_angles(np.array([40, 40]), np.array([20, 20]), np.array([30, 150]))
+    from twoscale.geometry import dirs_from_half_diff
+
+    wi, wo = (np.asarray(v) for v in dirs_from_half_diff(th, td, pd))
+    adapter = adapter_for(CT)
+    vals = np.asarray(adapter.evaluate(CT_TRUE, wi, wo))
+    np.testing.assert_allclose(vals[0], vals[1], rtol=1e-12)
+    np.testing.assert_allclose(wi[0, 2], wo[1, 2], rtol=1e-12)
+
+
+def test_pack_pads_with_zero_weight():
+    cells = Cells(
+        np.tile([0.0, 0.0, 1.0], (5, 1)),
+        np.tile([0.0, 0.0, 1.0], (5, 1)),
+        np.ones((5, 3)),
+        np.arange(5) * 180,  # φ_d bin 0: single cells, five pairs
+    )
+    data, n_active = pack(pair_cells(cells), n_chunks=3, chunk=4)
+    assert n_active == 2
+    assert data["w"].shape == (3, 4, 2)
+    assert float(data["w"].sum()) == 5.0
+
+
+def test_data_stats_peak_width(ct_clean):
+    """The 1/e half-width gives α to ~15 % for GGX (tan θ_{1/e} ≈ 0.80 α, cos⁴ neglected)."""
+    stats = data_stats(np.asarray(ct_clean.values), np.asarray(ct_clean.valid))
+    alpha_est = stats.beta / math.sqrt(math.sqrt(math.e) - 1.0)
+    assert alpha_est == pytest.approx(0.15, rel=0.15)
+    # The floor is the diffuse level plus GGX's heavy specular tail.
+    assert np.all(stats.floor >= 0.95 * np.asarray(CT_TRUE.rho_d) / np.pi)
+    assert np.all(stats.floor < 0.05 * stats.peak)
+
+
+# ------------------------------------------------------------------------------------ baseline fits
+def test_baseline_recovery_noise_free(ct_clean):
+    res = fit(ct_clean, config=CT, schedule="preview")
+    assert res.converged
+    _leaves_close(res.params, CT_TRUE, rtol=1e-6)
+    assert res.rmse_log < 1e-9
+    assert res.model == "cook-torrance-ggx"
+
+
+def test_baseline_recovery_noisy_within_standard_errors(ct_noisy):
+    res = fit(ct_noisy, config=CT, schedule="preview")
+    assert res.converged
+    # log residual of 1 % multiplicative noise: ≈ 0.01 ρcos/(1+ρcos), below 0.01.
+    assert 1e-3 < res.rmse_log < 0.01
+    for name in ("alpha", "f0", "rho_d"):
+        est = np.asarray(getattr(res.params, name))
+        true = np.asarray(getattr(CT_TRUE, name))
+        se = np.asarray(res.std_errors[name])
+        assert np.all(se > 0)
+        assert np.all(np.abs(est - true) <= 4 * se + 1e-12), (name, est, true, se)
+
+
+def test_fixed_parameter_is_held(ct_noisy):
+    res = fit(ct_noisy, config=CT, schedule="preview", fixed={"alpha": 0.16})
+    assert float(res.params.alpha) == pytest.approx(0.16, rel=1e-12)
+    assert res.std_errors["alpha"] is None
+    assert res.std_errors["f0"] is not None
+    with pytest.raises(ValueError, match="cannot fix"):
+        fit(ct_noisy, config=CT, schedule="preview", fixed={"beta": 0.1})
+
+
+def test_result_record_roundtrip(ct_noisy, tmp_path):
+    res = fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 40)], metric="linear")
+    path = res.save(tmp_path / "params.json")
+    raw = json.loads(path.read_text())
+    assert raw["format"] == "twoscale-fit/1"
+    assert raw["metrics"]["metric"] == "linear"
+    assert set(raw["versions"]) >= {"python", "jax", "optimistix", "numpy"}
+    assert raw["covariance"]["rank"] == 7
+    back = load_result(path)
+    _leaves_close(back.params, res.params, rtol=1e-15)
+    assert back.rmse_log == res.rmse_log and back.std_errors == json.loads(json.dumps(res.std_errors))
+    assert CookTorranceParams.from_dict(raw["params"]).to_dict() == res.params.to_dict()
+    assert not list(tmp_path.glob(".*tmp"))  # the atomic write left no temporary file
+
+
+def test_bad_arguments(ct_clean):
+    with pytest.raises(ValueError, match="metric"):
+        fit(ct_clean, config=CT, metric="l2")
+    with pytest.raises(ValueError, match="schedule"):
+        fit(ct_clean, config=CT, schedule="fast")
+    with pytest.raises(ValueError, match="material"):
+        fit(ct_clean, config=CT, material="plastic")
+
+
+def test_needs_float64(ct_clean):
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(RuntimeError, match="float64"):
+            fit(ct_clean, config=CT)
+    finally:
+        jax.config.update("jax_enable_x64", True)

@@ -1,0 +1,260 @@
+"""Command line: fit the two-scale model (or a baseline) to a MERL ``.binary`` file.
+
+    python -m twoscale.fit material.binary [--out DIR] [--metric log|linear]
+        [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
+    python -m twoscale.fit --example            # synthetic material, no data needed
+
+Writes ``DIR/params.json`` (the fit record; loads back with ``twoscale.fit.load_result``) and
+``DIR/slices.png``, ``DIR/lobes.png``, ``DIR/spheres.png``; prints a summary on stdout and a
+progress line per start on stderr. Everything is written to a temporary folder first and moved
+into place at the end, so a failed run leaves no partial output.
+
+Exit status: 0 success; 2 bad input (unreadable file, not a MERL file, no valid cell, bad option);
+3 the fit failed or did not converge (``--allow-unconverged`` writes the result anyway);
+1 unexpected internal error. Errors are one line on stderr, without a traceback
+(``TWOSCALE_DEBUG=1`` shows it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
+
+#: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo.
+EXAMPLE = dict(
+    beta=0.12,
+    p=1.4,
+    eta=(0.25, 0.55, 1.35),
+    k=(3.4, 2.4, 1.8),
+    sigma_s=0.012,
+    b=1.5,
+    c=2.2,
+)
+
+
+class InputError(Exception):
+    """Bad input: exit status 2."""
+
+
+class FitFailed(Exception):
+    """The fit failed or did not converge: exit status 3."""
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m twoscale.fit",
+        description="Fit the two-scale microfacet BRDF to a MERL .binary file.",
+    )
+    ap.add_argument("material", nargs="?", help="MERL .binary file")
+    ap.add_argument("--out", help="output folder (default: ./<name>-fit, or ./example-out)")
+    ap.add_argument("--metric", choices=("log", "linear"), default="log", help="fitted metric")
+    ap.add_argument(
+        "--material",
+        dest="material_type",
+        choices=("auto", "conductor", "plastic", "subsurface"),
+        default="auto",
+        help="material type (auto: conductor and plastic, keep the better fit)",
+    )
+    ap.add_argument("--max-theta", type=float, help="fit only θ_i, θ_o ≤ this angle (degrees)")
+    ap.add_argument("--preview", action="store_true", help="faster fit on subsamples only")
+    ap.add_argument("--example", action="store_true", help="fit a synthetic material (no data)")
+    ap.add_argument("--no-diffraction", action="store_true", help="specular lobe (+ diffuse) only")
+    ap.add_argument(
+        "--baseline",
+        choices=("ggx", "beckmann"),
+        help="fit the Cook-Torrance + Lambert baseline instead of the two-scale model",
+    )
+    ap.add_argument(
+        "--fix",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="hold a parameter fixed, e.g. --fix p=1 or --fix eta=1.5,1.5,1.5 (repeatable)",
+    )
+    ap.add_argument("--solver", choices=("lm", "dogleg"), default="lm")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the subsampling")
+    ap.add_argument("--no-plots", action="store_true", help="write params.json only")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    ap.add_argument(
+        "--allow-unconverged", action="store_true", help="write the result even if not converged"
+    )
+    return ap
+
+
+def _parse_fixed(items) -> dict:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise InputError(f"--fix expects NAME=VALUE, got {item!r}")
+        try:
+            vals = [float(v) for v in value.split(",")]
+        except ValueError:
+            raise InputError(f"--fix {name}: not a number: {value!r}") from None
+        out[name.strip()] = vals[0] if len(vals) == 1 else vals
+    return out
+
+
+def _example_data():
+    """The ``--example`` material: the model itself + 1 % noise + a realistic invalid mask."""
+    from twoscale.config import ModelConfig
+    from twoscale.fit.synthetic import synthetic
+    from twoscale.params import TwoScaleParams
+
+    e = EXAMPLE
+    params = TwoScaleParams.conductor(
+        e["beta"], e["p"], e["eta"], e["k"], sigma_s=e["sigma_s"], b=e["b"], c=e["c"]
+    )
+    data = synthetic(
+        params, ModelConfig(material="conductor"), noise=0.01, seed=1, name="example"
+    )
+    return data, params
+
+
+def _load(path: str):
+    from twoscale import merl
+
+    try:
+        data = merl.read(path)
+    except FileNotFoundError:
+        raise InputError(f"cannot read {path}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"cannot read {path}: it is a folder") from None
+    except merl.MerlFormatError as err:
+        raise InputError(str(err)) from None
+    except OSError as err:
+        raise InputError(f"cannot read {path}: {err.strerror or err}") from None
+    if not data.valid.any():
+        raise InputError(f"{path}: every cell is marked invalid (nothing to fit)")
+    return data
+
+
+def _write_outputs(out: Path, result, data, plots: bool, log) -> list[str]:
+    """Write everything into a temporary sibling folder, then move it into place."""
+    from twoscale.fit.record import write_text_atomic
+
+    out = out.resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    try:
+        if plots:
+            from twoscale.plots import write_fit_pictures
+
+            t = time.perf_counter()
+            write_fit_pictures(result, data, tmp)
+            log(f"pictures written ({time.perf_counter() - t:.1f} s)")
+        write_text_atomic(tmp / "params.json", result.to_json() + "\n")
+        names = sorted(p.name for p in tmp.iterdir())
+        if not out.exists():
+            os.replace(tmp, out)  # atomic: the folder appears complete
+        else:
+            if not out.is_dir():
+                raise InputError(f"--out {out} exists and is not a folder")
+            # params.json last, so a complete params.json means complete pictures.
+            for name in sorted(names, key=lambda n: n == "params.json"):
+                os.replace(tmp / name, out / name)
+            tmp.rmdir()
+        return names
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _run(args, log) -> int:
+    if args.example == bool(args.material):
+        raise InputError("give a MERL .binary file, or --example (not both)")
+    if args.max_theta is not None and not 0 < args.max_theta <= 90:
+        raise InputError(f"--max-theta must be in (0, 90] degrees, got {args.max_theta}")
+    fixed = _parse_fixed(args.fix)
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from twoscale.baselines import CookTorranceConfig
+    from twoscale.config import ModelConfig
+    from twoscale.fit.driver import FitError, fit
+
+    t0 = time.perf_counter()
+    truth = None
+    if args.example:
+        log("making the synthetic example material (two-scale conductor, 1 % noise)")
+        data, truth = _example_data()
+        out = Path(args.out or "example-out")
+    else:
+        data = _load(args.material)
+        out = Path(args.out or f"{data.name}-fit")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} exists and is not a folder")
+
+    material = None if args.baseline else args.material_type
+    if args.baseline:
+        config = CookTorranceConfig(args.baseline)
+    else:
+        config = ModelConfig(diffraction=not args.no_diffraction)
+    if args.example and args.material_type == "auto":
+        material = "conductor"  # known for the example: keeps it fast
+    try:
+        result = fit(
+            data,
+            config=config,
+            material=material,
+            metric=args.metric,
+            max_theta_deg=args.max_theta,
+            fixed=fixed,
+            schedule="preview" if args.preview else "default",
+            solver=args.solver,
+            seed=args.seed,
+            progress=log,
+        )
+    except FitError as err:
+        raise FitFailed(str(err)) from None
+    except ValueError as err:
+        raise InputError(str(err)) from None
+    if not result.converged and not args.allow_unconverged:
+        raise FitFailed(
+            f"the fit did not converge ({result.status}; log RMSE {result.rmse_log:.4g}); "
+            "rerun with --allow-unconverged to keep it"
+        )
+    names = _write_outputs(out, result, data, not args.no_plots, log)
+    print(result.summary())
+    if truth is not None:
+        print("example truth: " + ", ".join(f"{k}={v}" for k, v in truth.to_dict().items()))
+    print(f"wrote {', '.join(names)} to {out}/ ({time.perf_counter() - t0:.1f} s in all)")
+    return EXIT_OK
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    start = time.perf_counter()
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(f"[{time.perf_counter() - start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    try:
+        return _run(args, log)
+    except InputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_INPUT
+    except FitFailed as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_FIT
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # noqa: BLE001 - one line, no traceback, unless debugging
+        if os.environ.get("TWOSCALE_DEBUG"):
+            raise
+        print(f"error: internal error: {type(err).__name__}: {err}", file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())

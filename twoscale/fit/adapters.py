@@ -1,0 +1,248 @@
+"""Model adapters: one small interface for every BRDF the driver can fit.
+
+An adapter is a frozen (hashable) dataclass holding the model's static configuration and
+providing:
+
+- ``evaluate(params, wi, wo) -> (..., C)``: the BRDF without the cosine (1/sr);
+- ``to_unconstrained(params)`` / ``from_unconstrained(u)``: the bijection to unconstrained space;
+- ``starts(stats) -> list[(label, params)]``: initial guesses placed with :class:`DataStats`;
+- ``params_to_dict`` / ``params_from_dict`` and ``config_to_dict``: the JSON record;
+- ``field_names``: the parameter fields this configuration uses (for ``fixed=`` and errors).
+
+:class:`TwoScaleAdapter` wraps :func:`twoscale.brdf` with a :class:`twoscale.ModelConfig`;
+:class:`CookTorranceAdapter` the baseline of :mod:`twoscale.baselines`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import numpy as np
+
+from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
+from twoscale.fit.starts import DataStats, conductor_k_for_f0, dielectric_eta_for_f0
+
+# Start grid of MODEL.md §8.
+START_P = (0.5, 1.0, 2.0)
+START_C = (1.5, 2.5)
+START_A_SPEC = (0.3, 0.7)
+#: Start value of the nano-scale correlation length b (µm): B = b/λ ≈ 2 in the green channel,
+#: a diffraction halo of half-width ≈ 15° in θ_h.
+START_B = 1.0
+#: Lobe names of the two-scale model, in the order of :meth:`TwoScaleAdapter.evaluate_lobes`.
+LOBES = ("specular", "diffraction", "diffuse")
+
+
+@dataclasses.dataclass(frozen=True)
+class CookTorranceAdapter:
+    """Cook-Torrance (GGX or Beckmann) + Lambert baseline."""
+
+    config: CookTorranceConfig = CookTorranceConfig()
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def material(self) -> str:
+        return "baseline"
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        return self.config.param_names
+
+    #: Per-channel fields whose element c changes output channel c only (Jacobian colouring).
+    separable_fields = ("f0", "rho_d")
+
+    def evaluate(self, params, wi, wo):
+        return cook_torrance(params, wi, wo, self.config)
+
+    def to_unconstrained(self, params):
+        return params.to_unconstrained()
+
+    def from_unconstrained(self, u):
+        return CookTorranceParams.from_unconstrained(u)
+
+    def params_to_dict(self, params) -> dict:
+        return params.to_dict()
+
+    def params_from_dict(self, d: dict):
+        return CookTorranceParams.from_dict(d)
+
+    def config_to_dict(self) -> dict:
+        return {"model": "cook-torrance", **self.config.to_dict()}
+
+    def starts(self, stats: DataStats) -> list[tuple[str, CookTorranceParams]]:
+        # GGX falls to 1/e of its peak at tan θ = α √(√e − 1) ≈ 0.80 α; Beckmann at tan θ = α.
+        scale = 1.0 / math.sqrt(math.sqrt(math.e) - 1.0) if self.config.distribution == "ggx" else 1
+        alpha0 = float(np.clip(stats.beta * scale, 2e-3, 1.0))
+        rho_d = np.clip(np.pi * stats.floor, 1e-3, 0.95)
+        out = []
+        for factor in (0.6, 1.0, 1.6):
+            alpha = float(np.clip(alpha0 * factor, 2e-3, 1.5))
+            d0 = 1.0 / (math.pi * alpha * alpha)
+            f0 = np.clip(4.0 * np.maximum(stats.peak - stats.floor, 0.0) / d0, 0.01, 0.98)
+            out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d)))
+        return out
+
+
+def _epd_d0(beta: float, p: float) -> float:
+    """EPD peak ``p / (π β² Γ(1/p))`` (host-side, for start placement)."""
+    return p / (math.pi * beta * beta * math.gamma(1.0 / p))
+
+
+def _renorm_at_normal(big_b: float, c: float) -> float:
+    """``R(0; B, c) = 1 − (1 + B²)^{−(c−1)/2}`` (MODEL.md §3.5)."""
+    return 1.0 - (1.0 + big_b * big_b) ** (-(c - 1.0) / 2.0)
+
+
+def sigma_s_for_a_spec(a_spec: float, b: float, c: float, wavelength: float) -> float:
+    """σ_s (µm) with ``A_spec(θ_d = 0) = a_spec`` at ``wavelength`` (µm).
+
+    ``A_spec(0) = exp[−(4π σ_s √R(0; B, c) / λ)²]``, ``B = b/λ``.
+    """
+    r0 = _renorm_at_normal(b / wavelength, c)
+    return wavelength * math.sqrt(-math.log(a_spec)) / (4.0 * math.pi * math.sqrt(r0))
+
+
+@dataclasses.dataclass(frozen=True)
+class TwoScaleAdapter:
+    """The two-scale model :func:`twoscale.brdf` under a fixed :class:`twoscale.ModelConfig`."""
+
+    config: object  # twoscale.ModelConfig (hashable)
+
+    @property
+    def name(self) -> str:
+        return "two-scale"
+
+    @property
+    def material(self) -> str:
+        return self.config.material
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        return tuple(self.config.param_names)
+
+    @property
+    def separable_fields(self) -> tuple[str, ...]:
+        """Per-channel fields whose element c changes output channel c only.
+
+        RGB configurations: a conductor's η and k (each channel is its own Fresnel term); ρ_d of
+        dielectrics. Not a dielectric's η: the diffuse layer depends on the luminance mean η̄ of
+        all channels. Spectral configurations mix wavelengths into RGB: none.
+        """
+        if self.config.is_spectral:
+            return ()
+        return ("eta", "k") if self.config.material == "conductor" else ("rho_d",)
+
+    def evaluate(self, params, wi, wo):
+        from twoscale.model import brdf
+
+        return brdf(params, wi, wo, self.config)
+
+    def evaluate_lobes(self, params, wi, wo):
+        """The lobes stacked on the last axis: ``[specular, diffraction, diffuse]`` × C (0 if off)."""
+        import jax.numpy as jnp
+
+        from twoscale.model import lobes
+
+        out = lobes(params, wi, wo, self.config)
+        ref = next(iter(out.values()))
+        return jnp.concatenate([out.get(n, jnp.zeros_like(ref)) for n in LOBES], axis=-1)
+
+    def to_unconstrained(self, params):
+        return params.to_unconstrained()
+
+    def from_unconstrained(self, u):
+        from twoscale.params import TwoScaleParams
+
+        return TwoScaleParams.from_unconstrained(u)
+
+    def params_to_dict(self, params) -> dict:
+        return params.to_dict()
+
+    def params_from_dict(self, d: dict):
+        from twoscale.params import TwoScaleParams
+
+        return TwoScaleParams.from_dict(d)
+
+    def config_to_dict(self) -> dict:
+        return {"model": "two-scale", **config_to_dict(self.config)}
+
+    def starts(self, stats: DataStats) -> list[tuple[str, object]]:
+        from twoscale.params import TwoScaleParams
+
+        cfg = self.config
+        wl = float(np.median(np.asarray(cfg.wavelengths)))
+        beta = stats.beta
+        spec_peak = np.maximum(stats.peak - (stats.floor if cfg.material != "conductor" else 0), 0)
+        diffraction = bool(cfg.diffraction)
+        grid_c = START_C if diffraction else (None,)
+        grid_a = START_A_SPEC if diffraction else (None,)
+        out = []
+        for p, c, a_spec in itertools.product(START_P, grid_c, grid_a):
+            f0 = np.clip(4.0 * spec_peak / _epd_d0(beta, p), 0.02, 0.97)
+            extra = {}
+            label = f"p={p:g}"
+            if diffraction:
+                extra = dict(
+                    sigma_s=sigma_s_for_a_spec(a_spec, START_B, c, wl),
+                    b=START_B,
+                    c=c,
+                )
+                label += f" c={c:g} A_spec(0)={a_spec:g}"
+            if cfg.apparatus:
+                extra["e"] = 0.5
+            if cfg.material == "conductor":
+                eta = np.full(3, 1.2)
+                k = conductor_k_for_f0(f0, 1.2)
+                params = TwoScaleParams.conductor(beta, p, eta, k, **extra)
+            else:
+                f0_d = np.clip(f0, 0.02, 0.1)  # dielectric coats: F0 of a few %
+                eta = np.clip(dielectric_eta_for_f0(f0_d), 1.2, 2.2)
+                rho_d = np.clip(np.pi * stats.floor / 0.9, 1e-3, 0.95)
+                make = (
+                    TwoScaleParams.plastic
+                    if cfg.material == "plastic"
+                    else TwoScaleParams.subsurface
+                )
+                params = make(beta, p, eta, rho_d, **extra)
+            if hasattr(params, "for_config"):
+                params = params.for_config(cfg)
+            out.append((label, params))
+        return out
+
+
+def config_to_dict(config) -> dict:
+    """JSON-friendly dict of a (dataclass-like) model configuration."""
+    if hasattr(config, "to_dict"):
+        return dict(config.to_dict())
+    out = {}
+    for f in dataclasses.fields(config):
+        v = getattr(config, f.name)
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def config_from_dict(d: dict):
+    """Rebuild a configuration saved by :func:`config_to_dict` (two-scale or baseline)."""
+    d = dict(d)
+    model = d.pop("model", "two-scale")
+    if model == "cook-torrance":
+        return CookTorranceConfig.from_dict(d)
+    from twoscale.config import ModelConfig
+
+    if hasattr(ModelConfig, "from_dict"):
+        return ModelConfig.from_dict(d)
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+    return ModelConfig(**kwargs)
+
+
+def adapter_for(config):
+    """The adapter for a configuration object."""
+    if isinstance(config, CookTorranceConfig):
+        return CookTorranceAdapter(config)
+    return TwoScaleAdapter(config)

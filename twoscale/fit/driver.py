@@ -1,0 +1,646 @@
+"""Fit a BRDF model to MERL data: starts, coarse-to-fine schedule, Levenberg-Marquardt.
+
+Protocol (MODEL.md §8): float64; cosine-weighted linear or log residuals over the valid cells
+(optionally only ``θ_i, θ_o ≤ max_theta``); parameters optimised in unconstrained space; several
+starts; RMSE reported on all valid cells. The schedule is coarse to fine: every start is fitted
+on a small random subsample of the cells, the best few go on to a larger subsample, and the best
+one is refined on all fitted cells. Every stage uses a fixed number of cells, so one compiled
+solver serves all its starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from twoscale.baselines import CookTorranceConfig
+from twoscale.fit.adapters import adapter_for
+from twoscale.fit.record import FitResult, package_versions
+from twoscale.fit.residuals import (
+    CHUNK,
+    DIRECTION_CHUNKS,
+    Layout,
+    Problem,
+    check_metric,
+    compressed_residuals,
+    pack,
+    pack_directions,
+    pair_cells,
+    predict,
+    select_cells,
+    sum_squares,
+)
+from twoscale.fit.starts import data_stats
+
+MATERIALS = ("conductor", "plastic", "subsurface")
+#: Material types tried by ``material="auto"`` (subsurface is only fitted when asked for).
+AUTO_MATERIALS = ("conductor", "plastic")
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of the schedule.
+
+    Attributes:
+        n_cells: cells fitted (a uniform random subsample of the fitted cells; None = all).
+        keep: how many of the best solutions go on to the next stage (per material type).
+        max_steps: solver steps allowed per start.
+    """
+
+    n_cells: int | None
+    keep: int
+    max_steps: int
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+#: Default: every start on ≈ 4 096 cells, the best 3 on ≈ 32 768, the best one on all cells.
+DEFAULT_SCHEDULE = (
+    Stage(n_cells=4096, keep=3, max_steps=30),
+    Stage(n_cells=32768, keep=1, max_steps=40),
+    Stage(n_cells=None, keep=1, max_steps=20),
+)
+#: Preview: the same without the full-data refinement (errors still reported on all valid cells).
+PREVIEW_SCHEDULE = (
+    Stage(n_cells=4096, keep=2, max_steps=30),
+    Stage(n_cells=32768, keep=1, max_steps=40),
+)
+SCHEDULES = {"default": DEFAULT_SCHEDULE, "preview": PREVIEW_SCHEDULE}
+
+#: Solver tolerances: optimistix's Cauchy test (on the scaled parameters and the compressed
+#: residual, RMS norm), and the standard-error test of :func:`_small_step` (either one stops).
+RTOL = 1e-7
+ATOL = 1e-9
+SE_TOL = 0.05
+
+
+class FitError(RuntimeError):
+    """The fit could not produce a result (e.g. non-finite cost for every start)."""
+
+
+#: Static bound of the solver loop; the per-stage limit (``Stage.max_steps``) is a dynamic value,
+#: so stages with different limits share one compiled solve.
+MAX_STEPS_BOUND = 1000
+
+
+def _small_step(state, options):
+    """Has the Gauss-Newton step from the last accepted point shrunk below ``se_tol`` standard errors?
+
+    With the compressed residual ``r̃ = [q, t]``, the full Gauss-Newton step ``δ`` satisfies
+    ``δᵀ JᵀJ δ = |q|²`` and the residual variance is ``σ² ≈ t²/(m − n)``, so the step measured in
+    standard errors is ``|q| √(m − n)/t``. Stopping when it is below ``se_tol`` (default 0.05)
+    ends the fit once further steps cannot change the parameters by a meaningful fraction of
+    their uncertainty — the useful notion of convergence for tens of thousands of noisy residuals.
+    """
+    r_c = state.f_info.residual
+    q2 = jnp.sum(r_c[:-1] ** 2)
+    t2 = r_c[-1] ** 2
+    dof = jnp.maximum(options["n_resid"] - (r_c.shape[0] - 1), 1)
+    small = q2 * dof < options["se_tol"] ** 2 * t2
+    return small & (state.num_accepted_steps >= 1)
+
+
+class _LevenbergMarquardt(optx.LevenbergMarquardt):
+    """:class:`optimistix.LevenbergMarquardt` that also stops when the step is negligible against
+    the standard errors (:func:`_small_step`) or at ``options["step_cap"]`` steps (dynamic,
+    unlike ``max_steps``, so stages with different limits share one compiled solve)."""
+
+    def terminate(self, fn, y, args, options, state, tags):
+        terminate, result = super().terminate(fn, y, args, options, state, tags)
+        stop = _small_step(state, options) | (state.num_steps >= options["step_cap"])
+        return terminate | stop, result
+
+
+class _Dogleg(optx.Dogleg):
+    """:class:`optimistix.Dogleg` with the same extra stopping rules as :class:`_LevenbergMarquardt`."""
+
+    def terminate(self, fn, y, args, options, state, tags):
+        terminate, result = super().terminate(fn, y, args, options, state, tags)
+        stop = _small_step(state, options) | (state.num_steps >= options["step_cap"])
+        return terminate | stop, result
+
+
+def _make_solver(name: str, rtol: float, atol: float):
+    if name == "lm":
+        return _LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    if name == "dogleg":
+        return _Dogleg(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    raise ValueError(f"solver must be 'lm' or 'dogleg', got {name!r}")
+
+
+#: Initial Levenberg-Marquardt damping relative to the diagonal of JᵀJ (see :func:`_scales`).
+INITIAL_DAMPING = 1e-3
+#: Largest scale of a free parameter in unconstrained units (for parameters with ~no influence).
+_MAX_SCALE = 10.0
+
+
+def _scales(jtj: np.ndarray) -> np.ndarray:
+    """Per-parameter scales ``σ_j = 1/(√(JᵀJ)_jj √μ0)``: the solver works on ``z = (y − y0)/σ``.
+
+    optimistix's Levenberg-Marquardt damps with ``λ I`` and starts at ``λ = 1``; in ``z`` the
+    Gauss-Newton matrix has diagonal ``1/μ0``, so its first step has relative damping
+    ``μ0`` = :data:`INITIAL_DAMPING` whatever the units of the parameters (Marquardt's scaling).
+    """
+    d = np.sqrt(np.maximum(np.diag(np.asarray(jtj)), 0.0))
+    with np.errstate(divide="ignore"):
+        s = 1.0 / (d * math.sqrt(INITIAL_DAMPING))
+    return np.where(np.isfinite(s), np.minimum(s, _MAX_SCALE), _MAX_SCALE)
+
+
+@eqx.filter_jit
+def _solve(problem, y0, frozen, data, n_active, step_cap, n_resid, scale, rtol, atol, se_tol, solver_name):
+    """Least-squares solve from ``y0`` on the active chunks of ``data``, at most ``step_cap`` steps.
+
+    The solver works on ``z = (y − y0)/scale``. Returns ``(y, result, converged, steps, rᵀr, JᵀJ)``,
+    the last two at ``y`` (``JᵀJ`` in ``y``, from the solver's final linearisation: no extra pass
+    over the data). ``converged``: the solver's own test or the standard-error test, not the
+    step limit.
+    """
+    solver = _make_solver(solver_name, rtol, atol)
+
+    def fn(z, args):
+        return compressed_residuals(problem, y0 + scale * z, *args)
+
+    options = {"step_cap": step_cap, "n_resid": n_resid, "se_tol": se_tol}
+    sol = optx.least_squares(
+        fn,
+        solver,
+        jnp.zeros_like(y0),
+        args=(frozen, data, n_active),
+        options=options,
+        max_steps=MAX_STEPS_BOUND,
+        throw=False,
+    )
+    y = y0 + scale * sol.value
+    j_c = sol.state.f_info.jac.as_matrix() / scale[None, :]  # back to y
+    rr = sum_squares(problem, y, frozen, data, n_active)
+    converged = (sol.state.terminate | _small_step(sol.state, options)) & (
+        sol.result == optx.RESULTS.successful
+    )
+    return y, sol.result, converged, sol.stats["num_steps"], rr, j_c.T @ j_c
+
+
+@eqx.filter_jit
+def _sum_squares(problem, y, frozen, data, n_active):
+    return sum_squares(problem, y, frozen, data, n_active)
+
+
+@eqx.filter_jit
+def _predict(fn, params, data, n_active, n_out):
+    return predict(fn, params, data, n_active, n_out)
+
+
+@eqx.filter_jit
+def _physical_free(problem, y, frozen, spec):
+    """Flat physical values of the free parameters, and their Jacobian in ``y``."""
+
+    def phys(yy):
+        params = problem.params(yy, frozen)
+        free, _ = eqx.partition(params, spec)
+        leaves = jax.tree_util.tree_leaves(free)
+        return jnp.concatenate([jnp.ravel(x) for x in leaves])
+
+    return phys(y), jax.jacfwd(phys)(y)
+
+
+
+@dataclasses.dataclass
+class _Candidate:
+    """One start travelling through the schedule."""
+
+    label: str
+    group: int  # index into the list of groups (configuration, free-parameter layout)
+    y: jax.Array
+    cost: float = math.inf  # RMS of the residuals on the last stage's cells
+    steps: int = 0
+    status: str = "not run"
+    success: bool = False
+    rr: float = math.nan  # rᵀr at y on the last stage's cells
+    jtj: np.ndarray | None = None  # JᵀJ at y on the last stage's cells
+    m: int = 0  # residuals in that stage
+
+
+@dataclasses.dataclass
+class _Group:
+    adapter: object
+    spec: object
+    frozen: object
+    layout: Layout
+
+
+def _resolve_configs(config, material) -> list:
+    """The model configurations to try (several for ``material='auto'``)."""
+    if isinstance(config, CookTorranceConfig):
+        if material not in (None, "auto"):
+            raise ValueError("material does not apply to the Cook-Torrance baseline")
+        return [config]
+    from twoscale.config import ModelConfig
+
+    if config is None or (isinstance(config, str) and config == "auto"):
+        base = ModelConfig()
+        if material is None:
+            material = "auto"
+    elif isinstance(config, str):
+        raise ValueError(f"config must be a ModelConfig, a CookTorranceConfig or 'auto', got {config!r}")
+    else:
+        base = config
+    if material is None:
+        return [base]
+    if material == "auto":
+        return [dataclasses.replace(base, material=m) for m in AUTO_MATERIALS]
+    if material not in MATERIALS:
+        raise ValueError(f"material must be one of {MATERIALS} or 'auto', got {material!r}")
+    return [dataclasses.replace(base, material=material)]
+
+
+def _apply_fixed(params, fixed: dict, adapter):
+    """Set the fixed fields (physical values) and return (params, spec of free leaves)."""
+    spec = jax.tree_util.tree_map(lambda _: True, params)
+    for name, value in fixed.items():
+        if name not in adapter.field_names:
+            raise ValueError(
+                f"cannot fix {name!r}: parameters of this model are {', '.join(adapter.field_names)}"
+            )
+        current = getattr(params, name)
+        if current is None:
+            raise ValueError(f"cannot fix {name!r}: this configuration does not use it")
+        new = jnp.broadcast_to(jnp.asarray(value, dtype=jnp.float64), jnp.shape(current))
+        params = eqx.tree_at(lambda p, n=name: getattr(p, n), params, new)
+        spec = eqx.tree_at(lambda s, n=name: getattr(s, n), spec, False)
+    return params, spec
+
+
+def _schedule(schedule) -> tuple[Stage, ...]:
+    if isinstance(schedule, str):
+        if schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {tuple(SCHEDULES)} or a list of Stage")
+        return SCHEDULES[schedule]
+    stages = tuple(schedule)
+    if not stages or not all(isinstance(s, Stage) for s in stages):
+        raise ValueError("schedule must be a non-empty sequence of Stage")
+    return stages
+
+
+def _result_message(result) -> str:
+    for item, msg in (
+        (optx.RESULTS.successful, ""),
+        (optx.RESULTS.nonlinear_max_steps_reached, "maximum number of steps reached"),
+        (optx.RESULTS.nonlinear_divergence, "diverged"),
+        (optx.RESULTS.nonfinite, "non-finite values"),
+    ):
+        if bool(result == item):
+            return msg
+    return "linear solve failed"
+
+
+def _errors(pred: np.ndarray, cells) -> dict:
+    """RMSE of both metrics, overall and per channel, for predictions on ``cells``."""
+    cos = cells.cos_i[:, None]
+    lin = (pred - cells.rho) * cos
+    log = np.log1p(np.maximum(pred, 0.0) * cos) - np.log1p(cells.rho * cos)
+    return {
+        "rmse_linear": float(np.sqrt(np.mean(lin**2))),
+        "rmse_log": float(np.sqrt(np.mean(log**2))),
+        "per_channel": {
+            "rmse_linear": np.sqrt(np.mean(lin**2, axis=0)).tolist(),
+            "rmse_log": np.sqrt(np.mean(log**2, axis=0)).tolist(),
+        },
+    }
+
+
+def predict_cells(adapter, params, cells) -> np.ndarray:
+    """Model values ``(N, C)`` at the cells (one compiled pass per model configuration)."""
+    return evaluate_at(adapter.evaluate, params, cells.wi, cells.wo, adapter.config.n_channels)
+
+
+def evaluate_at(fn, params, wi, wo, n_out: int) -> np.ndarray:
+    """``fn(params, wi, wo) -> (N, n_out)`` at NumPy directions ``(N, 3)``, through the
+    fixed-shape buffer (so every call with the same ``fn`` shares one compiled function)."""
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    n = wi.shape[0]
+    cap = DIRECTION_CHUNKS * CHUNK
+    out = []
+    for start in range(0, max(n, 1), cap):
+        sl = slice(start, min(start + cap, n))
+        buf, n_active = pack_directions(wi[sl], wo[sl])
+        pred = np.asarray(_predict(fn, params, buf, jnp.int32(n_active), n_out))
+        out.append(pred.reshape(-1, n_out)[: wi[sl].shape[0]])
+    return np.concatenate(out, axis=0)
+
+
+def _standard_errors(group: _Group, problem: Problem, cand: _Candidate) -> tuple[dict, dict]:
+    """Standard errors ``σ² (JᵀJ)⁺`` at the solution, mapped to physical units (delta method)."""
+    n = int(cand.y.shape[0])
+    names = group.adapter.field_names
+    if n == 0:
+        return {k: None for k in names}, {"method": "none", "note": "every parameter fixed"}
+    jtj = np.asarray(cand.jtj)
+    dof = max(cand.m - n, 1)
+    sigma2 = float(cand.rr) / dof
+    # Scale to unit diagonal before the eigen-decomposition: rank is judged on correlations.
+    d = np.sqrt(np.maximum(np.diag(jtj), 0.0))
+    d_safe = np.where(d > 0, d, 1.0)
+    corr = jtj / np.outer(d_safe, d_safe)
+    evals, evecs = np.linalg.eigh(corr)
+    keep = evals > 1e-10 * max(evals.max(), np.finfo(float).tiny)
+    rank = int(keep.sum())
+    inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
+    cov_u = sigma2 * inv / np.outer(d_safe, d_safe)
+    _, jac = _physical_free(problem, cand.y, group.frozen, group.spec)
+    jac = np.asarray(jac)
+    cov_p = jac @ cov_u @ jac.T
+    se_flat = np.sqrt(np.maximum(np.diag(cov_p), 0.0))
+    std = _by_name(group, se_flat)
+    info = {
+        "method": "sigma^2 (J^T J)^+ at the solution (unconstrained space), "
+        "delta method to physical units",
+        "sigma2": sigma2,
+        "dof": dof,
+        "n_free": n,
+        "rank": rank,
+        "rank_deficient": rank < n,
+        "condition": float(evals.max() / max(evals.min(), np.finfo(float).tiny)),
+    }
+    if rank < n:
+        # Which parameters span the (near) null space: the large components of its eigenvectors.
+        null = _by_name(group, np.abs(evecs[:, ~keep]).max(axis=1))
+        weak = [k for k, v in null.items() if v is not None and np.max(v) > 0.3]
+        info["note"] = (
+            f"Jacobian rank {rank} < {n} free parameters: pseudo-inverse used; "
+            f"{', '.join(weak) or 'some parameters'} not determined by the data "
+            "(their errors are unreliable)"
+        )
+    return std, info
+
+
+def _by_name(group: _Group, flat) -> dict:
+    """Flat values over the free leaves → ``{field: float | list | None}``."""
+    tree = group.layout.unravel(jnp.asarray(flat))
+    out = {}
+    for name in group.adapter.field_names:
+        leaf = getattr(tree, name, None)
+        if leaf is None:
+            out[name] = None
+        else:
+            arr = np.asarray(leaf)
+            out[name] = float(arr) if arr.ndim == 0 else arr.tolist()
+    return out
+
+
+def fit(
+    data,
+    *,
+    config=None,
+    material: str | None = None,
+    metric: str = "log",
+    max_theta_deg: float | None = None,
+    fixed: dict | None = None,
+    starts: str | Sequence = "default",
+    schedule: str | Sequence[Stage] = "default",
+    solver: str = "lm",
+    seed: int = 0,
+    rtol: float = RTOL,
+    atol: float = ATOL,
+    se_tol: float = SE_TOL,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Fit a BRDF model to a measured MERL table.
+
+    Args:
+        data: a :class:`twoscale.merl.MerlData` (values in 1/sr, validity mask).
+        config: a :class:`twoscale.ModelConfig`, a :class:`~twoscale.baselines.CookTorranceConfig`
+            (baseline), or ``None`` / ``"auto"``: the default two-scale configuration with the
+            material type chosen by the better fit.
+        material: override the configuration's material type; ``"auto"`` tries conductor and
+            plastic and keeps the better (compared on the last subsample stage).
+        metric: ``"log"`` (default, Löw et al. 2012) or ``"linear"``; both cosine-weighted.
+        max_theta_deg: fit only cells with ``θ_i, θ_o ≤`` this angle (errors still on all cells).
+        fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
+        starts: ``"default"`` (grid of MODEL.md §8, placed from the data) or a list of parameter
+            objects (needs a single material type).
+        schedule: ``"default"``, ``"preview"`` (no full-data refinement) or a list of :class:`Stage`.
+        solver: ``"lm"`` (optimistix Levenberg-Marquardt) or ``"dogleg"``.
+        seed: seed of the subsampling.
+        rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).
+        se_tol: also stop when the Gauss-Newton step is below this many standard errors.
+        progress: called with one line of text per start and stage (e.g. ``print``).
+
+    Returns:
+        A :class:`~twoscale.fit.FitResult`.
+
+    Raises:
+        ValueError: bad arguments or no valid data. :class:`FitError`: no start gave a finite fit.
+    """
+    t0 = time.perf_counter()
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            "twoscale.fit needs float64: call jax.config.update('jax_enable_x64', True) first"
+        )
+    check_metric(metric)
+    stages = _schedule(schedule)
+    say = progress or (lambda _msg: None)
+    fixed = dict(fixed or {})
+    configs = _resolve_configs(config, material)
+    if not isinstance(starts, str) and len(configs) > 1:
+        raise ValueError("explicit starts need a single material type (pass material=...)")
+    if isinstance(starts, str) and starts != "default":
+        raise ValueError(f"starts must be 'default' or a list of parameters, got {starts!r}")
+
+    selection = select_cells(data, max_theta_deg=max_theta_deg)
+    stats = data_stats(np.asarray(data.values), np.asarray(data.valid))
+    rng = np.random.default_rng(seed)
+    # One buffer for every stage: the fitted cells in reciprocal pairs, in random order; each
+    # stage fits a prefix (a uniform random subsample of the pairs).
+    n_fit = len(selection.fit)
+    pairs = pair_cells(selection.fit)
+    pairs = pairs.take(rng.permutation(len(pairs)))
+    cells_upto = np.cumsum(pairs.w.sum(axis=1)).astype(np.int64)
+    buffer, _ = pack(pairs)
+
+    # Groups (one per configuration) and their candidates.
+    groups: list[_Group] = []
+    cands: list[_Candidate] = []
+    for cfg in configs:
+        adapter = adapter_for(cfg)
+        start_list = (
+            adapter.starts(stats)
+            if isinstance(starts, str)
+            else [(f"start {i}", s) for i, s in enumerate(starts)]
+        )
+        group = None
+        for label, p0 in start_list:
+            p0, spec = _apply_fixed(p0, fixed, adapter)
+            free, frozen = eqx.partition(adapter.to_unconstrained(p0), spec)
+            layout = Layout.of(free)
+            if group is None:
+                group = _Group(adapter, spec, frozen, layout)
+                groups.append(group)
+            elif layout != group.layout:
+                raise ValueError("all starts must have the same parameter structure")
+            cands.append(
+                _Candidate(f"{adapter.material} {label}", len(groups) - 1, layout.ravel(free))
+            )
+    say(
+        f"{n_fit} cells fitted of {len(selection.valid)} valid; {len(cands)} starts; "
+        f"metric {metric}; {len(stages)} stages"
+    )
+
+    stage_log = []
+    type_selection = None
+    for si, stage in enumerate(stages):
+        want = n_fit if stage.n_cells is None else min(stage.n_cells, n_fit)
+        n_pairs = int(np.searchsorted(cells_upto, want)) + 1  # pairs holding `want` cells
+        # Whole chunks, the nearest number (all pairs for the full stage).
+        n_active = -(-n_pairs // CHUNK) if stage.n_cells is None else max(1, round(n_pairs / CHUNK))
+        n_cells = int(cells_upto[min(n_active * CHUNK, len(pairs)) - 1])
+        entries = []
+        for ci, cand in enumerate(cands):
+            g = groups[cand.group]
+            problem = Problem(g.adapter, g.layout, metric)
+            ts = time.perf_counter()
+            n = g.layout.size
+            if n == 0:
+                y, steps, msg, ok = cand.y, 0, "", True
+                rr = float(_sum_squares(problem, y, g.frozen, buffer, jnp.int32(n_active)))
+                jtj = np.zeros((0, 0))
+            else:
+                m = n_cells * g.adapter.config.n_channels
+
+                def solve(y0, cap, scale, g=g, problem=problem, n_active=n_active, m=m):
+                    return _solve(
+                        problem,
+                        y0,
+                        g.frozen,
+                        buffer,
+                        jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
+                        jnp.int32(cap),  # dynamic too
+                        jnp.int32(m),
+                        jnp.asarray(scale),
+                        rtol,
+                        atol,
+                        se_tol,
+                        solver,
+                    )
+
+                if cand.jtj is None:
+                    # One step: the solver's first linearisation at y0 gives JᵀJ for the scales.
+                    *_, jtj0 = solve(cand.y, 1, np.ones(n))
+                    jtj0 = np.asarray(jtj0)
+                else:
+                    jtj0 = np.asarray(cand.jtj) * (m / max(cand.m, 1))  # JᵀJ grows with m
+                y, res, conv, steps, rr, jtj = solve(cand.y, stage.max_steps, _scales(jtj0))
+                steps, rr, ok = int(steps), float(rr), bool(conv)
+                msg = _result_message(res) or ("" if ok else "maximum number of steps reached")
+            m = n_cells * g.adapter.config.n_channels
+            cost = math.sqrt(rr / m) if math.isfinite(rr) else math.inf
+            if not np.all(np.isfinite(np.asarray(y))):
+                cost = math.inf
+            cand.y, cand.cost, cand.steps, cand.status, cand.success = y, cost, steps, msg, ok
+            cand.rr, cand.jtj, cand.m = rr, jtj, m
+            say(
+                f"stage {si + 1}/{len(stages)} ({n_cells} cells) start {ci + 1}/{len(cands)} "
+                f"[{cand.label}]: rms {cost:.5g}, {steps} steps{', ' + msg if msg else ''} "
+                f"({time.perf_counter() - ts:.1f} s)"
+            )
+            entries.append(
+                {"start": cand.label, "rms": cost, "steps": steps, "status": msg or "converged"}
+            )
+        stage_log.append({**stage.to_dict(), "n_cells_used": n_cells, "starts": entries})
+
+        finite = [c for c in cands if math.isfinite(c.cost)]
+        if not finite:
+            raise FitError("no start gave a finite fit (non-finite model values or residuals)")
+        # Keep the best `keep` per configuration group.
+        kept = []
+        for gi in range(len(groups)):
+            mine = sorted((c for c in finite if c.group == gi), key=lambda c: c.cost)
+            kept.extend(mine[: stage.keep])
+        # Material choice: before the last stage (or after it when there is only one).
+        is_last = si == len(stages) - 1
+        if len(groups) > 1 and (si == len(stages) - 2 or (is_last and len(stages) == 1)):
+            best_cost: dict[str, float] = {}
+            for c in kept:
+                mat = groups[c.group].adapter.material
+                best_cost[mat] = min(best_cost.get(mat, math.inf), c.cost)
+            winner = min(best_cost, key=best_cost.get)
+            type_selection = {"rms": best_cost, "chosen": winner, "stage": si + 1}
+            say(
+                "material: "
+                + ", ".join(f"{k} rms {v:.5g}" for k, v in best_cost.items())
+                + f" -> {winner}"
+            )
+            kept = [c for c in kept if groups[c.group].adapter.material == winner]
+        cands = sorted(kept, key=lambda c: c.cost)
+
+    best = cands[0]
+    g = groups[best.group]
+    problem = Problem(g.adapter, g.layout, metric)
+    params = problem.params(best.y, g.frozen)
+    std_errors, cov_info = _standard_errors(g, problem, best)
+    if stage_log[-1]["n_cells_used"] < n_fit:
+        cov_info["note_subsample"] = (
+            f"errors computed on the last stage's {stage_log[-1]['n_cells_used']}-cell subsample"
+        )
+
+    pred = predict_cells(g.adapter, params, selection.valid)
+    errs = _errors(pred, selection.valid)
+    wall = time.perf_counter() - t0
+    say(
+        f"done: rms log {errs['rmse_log']:.5g}, linear {errs['rmse_linear']:.5g} "
+        f"({'converged' if best.success else 'not converged: ' + best.status}; {wall:.1f} s)"
+    )
+    settings = {
+        "metric": metric,
+        "max_theta_deg": max_theta_deg,
+        "material": material,
+        "fixed": {k: np.asarray(v).tolist() for k, v in fixed.items()},
+        "starts": starts if isinstance(starts, str) else f"{len(starts)} given",
+        "schedule": [s.to_dict() for s in stages],
+        "solver": solver,
+        "rtol": rtol,
+        "atol": atol,
+        "se_tol": se_tol,
+        "initial_damping": INITIAL_DAMPING,
+        "seed": seed,
+        "chunk": CHUNK,
+        "convention": "lower",
+        "data_stats": stats.to_dict(),
+    }
+    return FitResult(
+        params=params,
+        model=g.adapter.name,
+        config=g.adapter.config_to_dict(),
+        metric=metric,
+        rmse_linear=errs["rmse_linear"],
+        rmse_log=errs["rmse_log"],
+        per_channel=errs["per_channel"],
+        rmse_fit=best.cost,
+        n_valid=len(selection.valid),
+        n_fit=n_fit,
+        converged=bool(best.success),
+        status=best.status,
+        steps=best.steps,
+        wall_time=wall,
+        std_errors=std_errors,
+        covariance=cov_info,
+        settings=settings,
+        versions=package_versions(),
+        data={
+            "name": getattr(data, "name", None),
+            "path": None if getattr(data, "path", None) is None else str(data.path),
+            "n_measured_valid": selection.n_measured_valid,
+            "n_below_horizon": selection.n_below_horizon,
+        },
+        stages=stage_log,
+        type_selection=type_selection,
+    )

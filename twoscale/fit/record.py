@@ -1,0 +1,243 @@
+"""The fit result record: what was fitted, how well, how, and with which software.
+
+``params.json`` is :meth:`FitResult.to_dict` as JSON. Its ``"params"`` entry is the parameters'
+own ``to_dict()``, so it loads back with ``TwoScaleParams.from_dict(record["params"])`` (or the
+baseline's ``from_dict``); :func:`load_result` rebuilds the whole :class:`FitResult`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.metadata
+import json
+import math
+import os
+import platform
+import tempfile
+from pathlib import Path
+from typing import Any
+
+FORMAT = "twoscale-fit/1"
+
+_PACKAGES = ("twoscale", "jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy", "scipy")
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of Python and of the packages a fit depends on."""
+    out = {"python": platform.python_version()}
+    for name in _PACKAGES:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def _jsonable(x):
+    """Plain-Python copy of ``x`` (NumPy/JAX scalars and arrays to floats and lists; NaN to None)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, bool | str) or x is None:
+        return x
+    if isinstance(x, int):
+        return x
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    try:
+        import numpy as np
+
+        arr = np.asarray(x)
+        if arr.dtype == bool:
+            return arr.tolist()
+        if arr.dtype.kind in "iu":
+            return arr.tolist()
+        if arr.dtype.kind == "f":
+            return _jsonable(arr.tolist())
+    except Exception:  # noqa: BLE001 - anything not array-like is stringified below
+        pass
+    return str(x)
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of :func:`twoscale.fit.fit`.
+
+    Attributes:
+        params: fitted parameters (``TwoScaleParams`` or a baseline's params), physical units.
+        model: ``"two-scale"`` or the baseline's name.
+        config: the model configuration as a dict (``{"model": ..., "material": ..., ...}``).
+        metric: ``"log"`` or ``"linear"`` (the fitted metric).
+        rmse_linear, rmse_log: RMSE of both cosine-weighted metrics over all valid cells and channels.
+        per_channel: ``{"rmse_linear": [C], "rmse_log": [C]}``.
+        rmse_fit: RMSE of the fitted metric on the fitted cells (after any angle cut).
+        n_valid, n_fit: number of valid cells, of fitted cells.
+        converged: the last stage's solver reported success; ``status`` is its message.
+        steps: solver steps of the last stage; ``stages`` has the per-stage, per-start details.
+        wall_time: seconds for the whole fit (compilation included).
+        std_errors: standard errors in physical units, ``None`` for fixed parameters
+            (``σ² (JᵀJ)⁺`` at the solution, mapped by the bijection's Jacobian).
+        covariance: how the errors were obtained (rank, rank deficiency, σ², note).
+        settings, versions, data: provenance.
+    """
+
+    params: Any
+    model: str
+    config: dict
+    metric: str
+    rmse_linear: float
+    rmse_log: float
+    per_channel: dict
+    rmse_fit: float
+    n_valid: int
+    n_fit: int
+    converged: bool
+    status: str
+    steps: int
+    wall_time: float
+    std_errors: dict
+    covariance: dict
+    settings: dict
+    versions: dict
+    data: dict
+    stages: list = dataclasses.field(default_factory=list)
+    type_selection: dict | None = None
+    params_dict: dict | None = None
+
+    @property
+    def material(self) -> str:
+        return str(self.config.get("material", self.model))
+
+    def to_dict(self) -> dict:
+        params = self.params_dict
+        if params is None:
+            params = self.params.to_dict()
+        return _jsonable(
+            {
+                "format": FORMAT,
+                "model": self.model,
+                "config": self.config,
+                "params": params,
+                "std_errors": self.std_errors,
+                "metrics": {
+                    "metric": self.metric,
+                    "rmse_linear": self.rmse_linear,
+                    "rmse_log": self.rmse_log,
+                    "per_channel": self.per_channel,
+                    "rmse_fit": self.rmse_fit,
+                    "n_valid": self.n_valid,
+                    "n_fit": self.n_fit,
+                },
+                "convergence": {
+                    "converged": self.converged,
+                    "status": self.status,
+                    "steps": self.steps,
+                },
+                "covariance": self.covariance,
+                "wall_time_s": self.wall_time,
+                "settings": self.settings,
+                "versions": self.versions,
+                "data": self.data,
+                "stages": self.stages,
+                "type_selection": self.type_selection,
+            }
+        )
+
+    def to_json(self, indent: int = 2) -> str:
+        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+
+    def save(self, path) -> Path:
+        """Write ``params.json`` atomically (temporary file in the same folder, then ``os.replace``)."""
+        return write_text_atomic(path, self.to_json() + "\n")
+
+    def summary(self) -> str:
+        """A few human-readable lines: model, errors, convergence, parameters ± errors."""
+        lines = [
+            f"model {self.model} ({self.material}), metric {self.metric}, "
+            f"{self.n_fit} of {self.n_valid} valid cells fitted",
+            f"RMSE (all valid cells): log {self.rmse_log:.4g}, linear {self.rmse_linear:.4g}",
+            f"{'converged' if self.converged else 'NOT converged'} ({self.status or 'ok'}), "
+            f"{self.steps} steps, {self.wall_time:.1f} s",
+        ]
+        params = self.params_dict if self.params_dict is not None else self.params.to_dict()
+        for name, value in params.items():
+            if value is None:
+                continue
+            se = self.std_errors.get(name)
+            lines.append(f"  {name:8s} = {_fmt(value)}" + (f"  ± {_fmt(se)}" if se else ""))
+        if self.covariance.get("rank_deficient"):
+            lines.append(f"  note: {self.covariance.get('note', 'rank-deficient Jacobian')}")
+        return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if v is None:
+        return "—"
+    if isinstance(v, float | int):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def write_text_atomic(path, text: str) -> Path:
+    """Write ``text`` to ``path`` so that readers see either the old file or the whole new one."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def result_from_dict(d: dict) -> FitResult:
+    """Rebuild a :class:`FitResult` from :meth:`FitResult.to_dict` output."""
+    from twoscale.fit.adapters import adapter_for, config_from_dict
+
+    if d.get("format") != FORMAT:
+        raise ValueError(f"not a twoscale fit record (format {d.get('format')!r}, want {FORMAT!r})")
+    adapter = adapter_for(config_from_dict(d["config"]))
+    params = adapter.params_from_dict(d["params"])
+    m = d["metrics"]
+    conv = d["convergence"]
+
+    def num(x):
+        return float("nan") if x is None else float(x)
+
+    return FitResult(
+        params=params,
+        model=d["model"],
+        config=d["config"],
+        metric=m["metric"],
+        rmse_linear=num(m["rmse_linear"]),
+        rmse_log=num(m["rmse_log"]),
+        per_channel=m["per_channel"],
+        rmse_fit=num(m["rmse_fit"]),
+        n_valid=int(m["n_valid"]),
+        n_fit=int(m["n_fit"]),
+        converged=bool(conv["converged"]),
+        status=conv["status"],
+        steps=int(conv["steps"]),
+        wall_time=num(d["wall_time_s"]),
+        std_errors=d["std_errors"],
+        covariance=d["covariance"],
+        settings=d["settings"],
+        versions=d["versions"],
+        data=d["data"],
+        stages=d.get("stages", []),
+        type_selection=d.get("type_selection"),
+        params_dict=d["params"],
+    )
+
+
+def load_result(path) -> FitResult:
+    """Load a ``params.json`` written by the CLI or :meth:`FitResult.save`."""
+    with open(path, encoding="utf-8") as f:
+        return result_from_dict(json.load(f))

@@ -1,0 +1,290 @@
+"""PNG pictures of a fit (matplotlib, Agg backend): slices, lobes, spheres.
+
+- :func:`plot_slices`: measured vs fitted ``ρ(θ_h)`` at a few ``θ_d`` (``φ_d = 90°``), log scale;
+- :func:`plot_lobes`: the lobes in the plane of incidence for a few ``θ_i`` (measured dots);
+- :func:`plot_spheres`: a sphere under a point light, measured (MERL table lookup, nearest bin)
+  and fitted (the model), side by side with the same exposure.
+
+Each takes a ``model`` callable ``model(wi, wo) -> (..., 3)`` (NumPy in, NumPy out); build one
+with :func:`model_function`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+_CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def model_function(adapter, params, *, lobes: bool = False):
+    """``f(wi, wo) -> ndarray (..., C)`` evaluating a fitted model (NumPy in and out).
+
+    Evaluation goes through :func:`twoscale.fit.driver.evaluate_at` (one compiled function per
+    model configuration, shared with the fit). With ``lobes=True`` (two-scale model only) the
+    function returns ``{lobe: (..., C)}``.
+    """
+    from twoscale.fit.adapters import LOBES
+    from twoscale.fit.driver import evaluate_at
+
+    n_ch = adapter.config.n_channels
+
+    def call(wi, wo):
+        wi = np.asarray(wi, dtype=np.float64)
+        shape = wi.shape[:-1]
+        if lobes:
+            vals = evaluate_at(adapter.evaluate_lobes, params, wi, wo, len(LOBES) * n_ch)
+            vals = vals.reshape(shape + (len(LOBES), n_ch))
+            present = [n for n in LOBES if n in _lobe_names(adapter.config)]
+            return {n: vals[..., LOBES.index(n), :] for n in present}
+        return evaluate_at(adapter.evaluate, params, wi, wo, n_ch).reshape(shape + (n_ch,))
+
+    return call
+
+
+def _lobe_names(config) -> tuple[str, ...]:
+    names = []
+    if config.specular:
+        names.append("specular")
+    if config.diffraction:
+        names.append("diffraction")
+    if getattr(config, "has_diffuse", False):
+        names.append("diffuse")
+    return tuple(names)
+
+
+def _dirs(theta_h, theta_d, phi_d):
+    """NumPy ``(wi, wo)`` of half/difference angles (``φ_h = 0``; MODEL.md §7)."""
+    from twoscale.geometry import _dirs_from_half_diff
+
+    return _dirs_from_half_diff(np, *np.broadcast_arrays(theta_h, theta_d, phi_d))
+
+
+def _half_diff(wi, wo):
+    """NumPy ``(θ_h, θ_d, φ_d)`` of direction pairs (MODEL.md §7; plotting only).
+
+    ``h = (i+o)/|i+o|``, ``d = R_y(−θ_h) R_z(−φ_h) i``. The JAX version is
+    :func:`twoscale.geometry.half_diff_from_dirs`; this one avoids compiling eager JAX ops.
+    """
+    s = wi + wo
+    h = s / np.maximum(np.linalg.norm(s, axis=-1, keepdims=True), 1e-300)
+    theta_h = np.arctan2(np.hypot(h[..., 0], h[..., 1]), h[..., 2])
+    phi_h = np.arctan2(h[..., 1], h[..., 0])
+    c, s_ = np.cos(phi_h), np.sin(phi_h)
+    vx = c * wi[..., 0] + s_ * wi[..., 1]
+    vy = -s_ * wi[..., 0] + c * wi[..., 1]
+    ct, st = np.cos(theta_h), np.sin(theta_h)
+    dx = ct * vx - st * wi[..., 2]
+    dz = st * vx + ct * wi[..., 2]
+    return theta_h, np.arctan2(np.hypot(dx, vy), dz), np.arctan2(vy, dx)
+
+
+def merl_lookup(data, wi, wo):
+    """Measured values at arbitrary directions: the MERL bin containing each pair (nearest-bin).
+
+    Returns ``(values (..., 3), valid (...))``; invalid bins and directions below the horizon
+    give 0 and ``valid = False``.
+    """
+    from twoscale import merl
+
+    wi = np.asarray(wi, dtype=np.float64)
+    wo = np.asarray(wo, dtype=np.float64)
+    ih, jd, kp = merl.angles_to_bin(*_half_diff(wi, wo))
+    vals = np.asarray(data.values)[ih, jd, kp]
+    ok = np.asarray(data.valid)[ih, jd, kp] & (wi[..., 2] > 0) & (wo[..., 2] > 0)
+    return np.where(ok[..., None], vals, 0.0), ok
+
+
+def plot_slices(data, model, path, *, theta_d_deg=(0, 20, 45, 70), phi_d_deg: int = 90, title=""):
+    """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log scale."""
+    from twoscale import merl
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(theta_d_deg), figsize=(4 * len(theta_d_deg), 3.6), sharey=True)
+    axes = np.atleast_1d(axes)
+    ih = np.arange(merl.N_THETA_H)
+    y_lo, y_hi = math.inf, 0.0
+    for ax, td in zip(axes, theta_d_deg, strict=True):
+        jd = int(round(td))
+        kp = int(round(phi_d_deg))
+        th, tdr, pdr = merl.bin_to_angles(ih, np.full_like(ih, jd), np.full_like(ih, kp))
+        wi, wo = _dirs(th, tdr, pdr)
+        meas = np.asarray(data.values)[ih, jd, kp]
+        ok = np.asarray(data.valid)[ih, jd, kp] & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        fine_h = np.linspace(0.0, 89.0 / 90.0, 400) ** 2 * (np.pi / 2)  # the grid's θ_h range
+        fwi, fwo = _dirs(fine_h, np.full_like(fine_h, tdr[0]), np.full_like(fine_h, pdr[0]))
+        above = (fwi[:, 2] > 0) & (fwo[:, 2] > 0)
+        pred = model(fwi, fwo)
+        for c, colour in enumerate(_CHANNEL_COLOURS):
+            ax.plot(np.degrees(th[ok]), np.maximum(meas[ok, c], 1e-6), ".", ms=3, color=colour)
+            ax.plot(
+                np.degrees(fine_h[above]), np.maximum(pred[above, c], 1e-6), "-", lw=1, color=colour
+            )
+        ax.set_yscale("log")
+        if ok.any():
+            y_lo = min(y_lo, max(float(meas[ok].min()), 1e-6))
+            y_hi = max(y_hi, float(meas[ok].max()))
+        ax.set_xlabel("θ_h (deg)")
+        ax.set_title(f"θ_d = {td}°, φ_d = {phi_d_deg}°")
+        ax.grid(True, which="both", alpha=0.2)
+    if y_hi > 0:  # the measured range sets the scale (the model may soar at grazing angles)
+        axes[0].set_ylim(y_lo / 3, y_hi * 3)
+    axes[0].set_ylabel("ρ (1/sr)   dots: measured, lines: fit")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def _plane_dirs(theta_i_deg, n=361):
+    """Directions in the plane of incidence: ``wi`` at ``θ_i``, ``wo`` at signed angle ``t``.
+
+    ``wo = (−sin t, 0, cos t)``, so ``t = θ_i`` is the mirror direction.
+    """
+    ti = math.radians(theta_i_deg)
+    t = np.radians(np.linspace(-89.5, 89.5, n))
+    wi = np.broadcast_to(np.array([math.sin(ti), 0.0, math.cos(ti)]), (n, 3))
+    wo = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], axis=-1)
+    return np.degrees(t), wi, wo
+
+
+def plot_lobes(model, path, *, data=None, lobe_model=None, theta_i_deg=(0, 30, 60), title=""):
+    """The BRDF in the plane of incidence (green channel), total and per lobe, log scale.
+
+    Args:
+        model: ``model(wi, wo) -> (..., 3)``.
+        lobe_model: optional ``f(wi, wo) -> {lobe: (..., 3)}`` (two-scale model).
+        data: optional MERL data, drawn as dots (nearest-bin lookup).
+    """
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(theta_i_deg), figsize=(4 * len(theta_i_deg), 3.6), sharey=True)
+    axes = np.atleast_1d(axes)
+    styles = {"specular": "--", "diffraction": ":", "diffuse": "-."}
+    for ax, ti in zip(axes, theta_i_deg, strict=True):
+        t, wi, wo = _plane_dirs(ti)
+        total = model(wi, wo)[:, 1]
+        ax.plot(t, np.maximum(total, 1e-6), "-", color="k", lw=1.5, label="fit (total)")
+        if lobe_model is not None:
+            for name, vals in lobe_model(wi, wo).items():
+                ax.plot(
+                    t,
+                    np.maximum(vals[:, 1], 1e-6),
+                    styles.get(name, "-"),
+                    lw=1,
+                    label=name,
+                )
+        if data is not None:
+            meas, ok = merl_lookup(data, wi, wo)
+            ax.plot(t[ok], np.maximum(meas[ok, 1], 1e-6), ".", ms=3, color="tab:green", label="measured")
+        ax.axvline(ti, color="grey", lw=0.5)
+        ax.set_yscale("log")
+        ax.set_xlabel("θ_o (deg), mirror direction at +θ_i")
+        ax.set_title(f"θ_i = {ti}°")
+        ax.grid(True, which="both", alpha=0.2)
+    axes[0].set_ylabel("ρ green (1/sr)")
+    axes[0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def sphere_directions(size: int = 160, light_deg: float = 30.0):
+    """Per-pixel local ``(wi, wo)`` of an orthographic sphere lit by a distant point light.
+
+    The camera looks along −z; the light lies in the x-z plane at ``light_deg`` from the view
+    direction. Returns ``(wi, wo, mask)`` with ``wi, wo`` of shape ``(size, size, 3)`` in each
+    pixel's tangent frame (normal = z) and ``mask`` the pixels on the sphere.
+    """
+    y, x = np.mgrid[1:-1 : size * 1j, -1:1 : size * 1j]
+    r2 = x * x + y * y
+    mask = r2 < 1.0
+    n = np.stack([x, y, np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))], axis=-1)
+    view = np.array([0.0, 0.0, 1.0])
+    a = math.radians(light_deg)
+    light = np.array([math.sin(a), 0.0, math.cos(a)])
+    # Tangent frame: t ⊥ n (from the view direction, or x where n ≈ view), b = n × t.
+    ref = np.where(np.abs(n[..., 2:3]) < 0.999, view, np.array([1.0, 0.0, 0.0]))
+    t = np.cross(ref, n)
+    t /= np.linalg.norm(t, axis=-1, keepdims=True)
+    b = np.cross(n, t)
+
+    def local(v):
+        return np.stack([np.sum(v * t, -1), np.sum(v * b, -1), np.sum(v * n, -1)], axis=-1)
+
+    wi = local(np.broadcast_to(light, n.shape))
+    wo = local(np.broadcast_to(view, n.shape))
+    return wi, wo, mask
+
+
+def _tonemap(rgb, scale):
+    x = np.clip(rgb * scale, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def render_spheres(data, model, *, size: int = 160, light_deg: float = 30.0):
+    """Linear radiance images ``(measured, fitted)``, each ``(size, size, 3)`` (``ρ cos θ_i``)."""
+    wi, wo, mask = sphere_directions(size, light_deg)
+    lit = mask & (wi[..., 2] > 0) & (wo[..., 2] > 0)
+    flat = lit.reshape(-1)
+    wi_f, wo_f = wi.reshape(-1, 3)[flat], wo.reshape(-1, 3)[flat]
+    cos_i = wi_f[:, 2:3]
+    meas, _ = merl_lookup(data, wi_f, wo_f)
+    fit = model(wi_f, wo_f)
+    out = []
+    for vals in (meas, fit):
+        img = np.zeros((size * size, 3))
+        img[flat] = np.maximum(vals, 0.0) * cos_i
+        out.append(img.reshape(size, size, 3))
+    return out[0], out[1], mask
+
+
+def plot_spheres(data, model, path, *, size: int = 160, light_deg: float = 30.0, title=""):
+    """Measured (MERL lookup) and fitted spheres side by side, same exposure (99.5th percentile)."""
+    plt = _pyplot()
+    meas, fit, mask = render_spheres(data, model, size=size, light_deg=light_deg)
+    ref = meas[mask].max(axis=-1)
+    level = np.percentile(ref, 99.5) if ref.size else 1.0
+    scale = 1.0 / level if level > 0 else 1.0
+    fig, axes = plt.subplots(1, 2, figsize=(7, 3.8))
+    for ax, img, name in zip(axes, (meas, fit), ("measured (MERL lookup)", "fit"), strict=True):
+        ax.imshow(_tonemap(img, scale), interpolation="nearest")
+        ax.set_title(name)
+        ax.axis("off")
+    fig.suptitle(title or f"point light at {light_deg:g}° from the view direction")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
+
+
+def write_fit_pictures(result, data, out_dir, *, adapter=None) -> list[Path]:
+    """Write ``slices.png``, ``lobes.png`` and ``spheres.png`` for a :class:`FitResult`."""
+    from twoscale.fit.adapters import adapter_for, config_from_dict
+
+    out_dir = Path(out_dir)
+    adapter = adapter or adapter_for(config_from_dict(result.config))
+    model = model_function(adapter, result.params)
+    lobe_model = model_function(adapter, result.params, lobes=True) if adapter.name == "two-scale" else None
+    kind = f" ({result.material})" if result.material != result.model else ""
+    title = f"{getattr(data, 'name', '') or 'data'}: {result.model}{kind}, log RMSE {result.rmse_log:.3g}"
+    return [
+        plot_slices(data, model, out_dir / "slices.png", title=title),
+        plot_lobes(model, out_dir / "lobes.png", data=data, lobe_model=lobe_model, title=title),
+        plot_spheres(data, model, out_dir / "spheres.png", title=title),
+    ]
