@@ -129,3 +129,24 @@ def test_property_finite(cos, eta, k):
     d = fresnel.dielectric(cos, eta)
     assert np.isfinite(d) and 0.0 <= float(d) <= 1.0
     assert_finite_tree(grads_all(fresnel.dielectric, cos, eta), "grad")
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_gradients_finite_deep_grazing_grid(dtype):
+    """Regression: cos θ down to denormals (cos θ = 4.5e-160, η = 1 once gave a NaN gradient).
+
+    The discarded branch of a Fresnel ratio had ``den² = 0``; every combination of tiny cosines,
+    index-matched and total-internal-reflection indices and k = 0 / tiny / large is checked.
+    """
+    cs = jnp.array(
+        [0, 5e-324, 1e-310, 1e-300, 1e-200, 4.5e-160, 1e-155, 1e-150, 1e-100, 1e-20, 1e-8, 0.5, 1.0]
+    )
+    es = jnp.array([0.05, 0.5, 0.999, 1.0, 1.0 + 1e-12, 1.001, 1.5, 5.0])
+    ks = jnp.array([0.0, 1e-300, 1e-8, 1.0, 10.0])
+    c, e, k = (x.astype(dtype).ravel() for x in jnp.meshgrid(cs, es, ks, indexing="ij"))
+    for f, args in ((fresnel.conductor, (c, e, k)), (fresnel.dielectric, (c, e))):
+        vals = jax.vmap(f)(*args)
+        assert vals.dtype == dtype
+        assert np.all(np.isfinite(vals)) and np.all((vals >= 0) & (vals <= 1))
+        grads = jax.vmap(jax.grad(f, argnums=tuple(range(len(args)))))(*args)
+        assert_finite_tree(grads, f"{f.__name__} gradient")

@@ -5,18 +5,22 @@ All functions are elementwise, broadcast over their arguments, and keep the inpu
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 
-from twoscale._numerics import safe_sqrt
+from twoscale._numerics import safe_sqrt, tiny
 
 
 def _ratio(num, den, limit):
     """``num/den`` where ``den > 0``, else ``limit``; double where so the gradient stays finite.
 
-    A zero denominator only happens at grazing with ``η = 1, k = 0`` (index matched), where the
+    A (near-)zero denominator only happens at grazing with ``η = 1, k = 0`` (index matched), where the
     reflectance tends to 1.
     """
-    ok = den > 0.0
+    # The floor √tiny (not 0) keeps the discarded branch's derivative −num/den² finite: with
+    # den ≈ 1e-160 (cos θ ≈ 1e-160 at η = 1) den² underflows and 0·inf would give NaN.
+    ok = den > math.sqrt(tiny(jnp.result_type(den)))
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), limit)
 
 
