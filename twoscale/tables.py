@@ -15,6 +15,13 @@ parameters inside by reparametrisation, so clamping is a documented last resort,
 Hot paths slice the parameter axes once (:meth:`Spline.slice`, a contraction of the
 coefficient tensor) and then do cheap 1-D lookups per sample.
 
+Interpolation order (static ``Spline.order``): 3 (the default, everything above) or 1, the
+multilinear interpolation of the authors' tables (coefficients = the grid values, 2 per axis per
+query; C⁰, second-order accurate, kinks at the nodes). Order 1 exists to measure what the cubic
+spline buys (``python -m benchmarks.run``); the library always builds cubic splines.
+:meth:`Table.subsample` keeps every k-th node (a coarser table of the same function, for
+resolution studies).
+
 File format (``.npz``): ``values`` (float64, grid shape + optional trailing component dims) and
 ``meta`` (a JSON string with ``name``, ``version``, ``axes`` = list of
 ``{name, coordinate, lo, hi, n}``, ``components``, ``generator`` settings, ``build_seconds``).
@@ -84,11 +91,20 @@ def bspline_coefficients(values: np.ndarray, n_axes: int) -> np.ndarray:
     return c
 
 
-def _weights(x, lo: float, step: float, n: int):
-    """Index of the first of 4 coefficients and the 4 cubic B-spline weights at coordinate x."""
+#: Interpolation orders of :class:`Spline`: cubic B-spline (default) and multilinear.
+ORDERS = (3, 1)
+
+
+def _weights(x, lo: float, step: float, n: int, order: int = 3):
+    """Index of the first coefficient and the ``order + 1`` weights at coordinate x.
+
+    Order 3: the 4 cubic B-spline weights; order 1: the 2 linear (hat-function) weights.
+    """
     u = (jnp.clip(x, lo, lo + step * (n - 1)) - lo) / step
     i = jnp.clip(jnp.floor(u), 0, n - 2)
     t = u - i
+    if order == 1:
+        return i.astype(jnp.int32), jnp.stack([1.0 - t, t], axis=-1)
     t2, t3 = t * t, t * t * t
     w = jnp.stack(
         [
@@ -105,17 +121,28 @@ def _weights(x, lo: float, step: float, n: int):
 class Spline(eqx.Module):
     """A tensor-product cubic B-spline over uniform axes (a pytree: coefficients are leaves).
 
-    ``coeffs`` has shape ``(n_0+2, …, n_{d−1}+2, *components)``.
+    ``coeffs`` has shape ``(n_0+2, …, n_{d−1}+2, *components)`` (order 3, the default) or
+    ``(n_0, …, n_{d−1}, *components)`` (order 1: multilinear, coefficients = grid values).
     """
 
     coeffs: jax.Array
     lo: tuple[float, ...] = eqx.field(static=True)
     step: tuple[float, ...] = eqx.field(static=True)
     n: tuple[int, ...] = eqx.field(static=True)
+    order: int = eqx.field(static=True, default=3)
+
+    def __check_init__(self):
+        if self.order not in ORDERS:
+            raise ValueError(f"Spline.order must be one of {ORDERS}, got {self.order!r}")
 
     @property
     def ndim(self) -> int:
         return len(self.n)
+
+    @property
+    def width(self) -> int:
+        """Coefficients per axis per query (4 cubic, 2 linear)."""
+        return self.order + 1
 
     def slice(self, *coords) -> Spline:
         """Fix the leading ``len(coords)`` axes at scalar coordinates; returns a lower-dim Spline.
@@ -124,11 +151,13 @@ class Spline(eqx.Module):
         """
         c = self.coeffs
         for k, x in enumerate(coords):
-            i, w = _weights(jnp.asarray(x, c.dtype), self.lo[k], self.step[k], self.n[k])
-            block = jax.lax.dynamic_slice_in_dim(c, i, 4, axis=0)
+            i, w = _weights(
+                jnp.asarray(x, c.dtype), self.lo[k], self.step[k], self.n[k], self.order
+            )
+            block = jax.lax.dynamic_slice_in_dim(c, i, self.width, axis=0)
             c = jnp.tensordot(w.astype(c.dtype), block, axes=(0, 0))
         m = len(coords)
-        return Spline(c, self.lo[m:], self.step[m:], self.n[m:])
+        return Spline(c, self.lo[m:], self.step[m:], self.n[m:], self.order)
 
     def __call__(self, *coords):
         """Evaluate at broadcast coordinates (one array per axis); trailing components appended."""
@@ -138,13 +167,13 @@ class Spline(eqx.Module):
         coords = jnp.broadcast_arrays(*[jnp.asarray(x, c.dtype) for x in coords])
         shape = coords[0].shape
         iw = [
-            _weights(x.reshape(-1), lo, st, n)
+            _weights(x.reshape(-1), lo, st, n, self.order)
             for x, lo, st, n in zip(coords, self.lo, self.step, self.n, strict=True)
         ]
         comp = c.shape[self.ndim :]
         out = jnp.zeros((coords[0].size, *comp), c.dtype)
         extra = (None,) * len(comp)
-        for ks in itertools.product(range(4), repeat=self.ndim):
+        for ks in itertools.product(range(self.width), repeat=self.ndim):
             idx = tuple(i + k for (i, _), k in zip(iw, ks, strict=True))
             w = functools.reduce(
                 lambda a, b: a * b, [w[:, k] for (_, w), k in zip(iw, ks, strict=True)]
@@ -166,17 +195,40 @@ class Table:
     def coeffs(self) -> np.ndarray:
         return bspline_coefficients(self.values, len(self.axes))
 
-    def spline(self, dtype=jnp.float64) -> Spline:
-        """The interpolating spline with coefficients in ``dtype`` (float32 or float64)."""
+    def spline(self, dtype=jnp.float64, order: int = 3) -> Spline:
+        """The interpolating spline with coefficients in ``dtype`` (float32 or float64).
+
+        ``order=3`` (default): the C² cubic B-spline; ``order=1``: multilinear interpolation of
+        the grid values (for comparisons; see the module docstring).
+        """
         dtype = jnp.dtype(dtype)
         if dtype == jnp.float64 and not jax.config.jax_enable_x64:
             dtype = jnp.dtype(jnp.float32)
+        if order not in ORDERS:
+            raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
         return Spline(
-            jnp.asarray(self.coeffs, dtype=dtype),
+            jnp.asarray(self.coeffs if order == 3 else self.values, dtype=dtype),
             tuple(a.lo for a in self.axes),
             tuple(a.step for a in self.axes),
             tuple(a.n for a in self.axes),
+            order,
         )
+
+    def subsample(self, stride: int = 2) -> Table:
+        """The table on every ``stride``-th node of each axis (a coarser grid of the same function).
+
+        Each axis keeps nodes ``0, stride, 2·stride, …`` (its upper end moves down to the last
+        kept node when ``n − 1`` is not a multiple of ``stride``). Extras are dropped.
+        """
+        if stride < 1:
+            raise ValueError(f"stride must be ≥ 1, got {stride}")
+        axes, index = [], []
+        for a in self.axes:
+            m = (a.n - 1) // stride + 1
+            axes.append(Axis(a.name, a.lo, a.lo + a.step * stride * (m - 1), m, a.coordinate))
+            index.append(slice(0, stride * (m - 1) + 1, stride))
+        meta = {**self.meta, "subsampled": stride}
+        return Table(tuple(axes), self.values[tuple(index)], meta, {})
 
     def __call__(self, *coords):
         """Evaluate at coordinates (dtype follows the coordinates)."""
