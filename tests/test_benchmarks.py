@@ -1,0 +1,45 @@
+"""Smoke test of the benchmarks (tiny sizes, no timing assertions) and the NumPy reference model."""
+
+import numpy as np
+
+import twoscale
+from benchmarks import numpy_model, run
+
+
+def _dirs(rng, n):
+    v = rng.normal(size=(n, 3))
+    v[:, 2] = np.abs(v[:, 2])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_numpy_model_agrees_with_brdf():
+    rng = np.random.default_rng(0)
+    wi, wo = run._grid(997)  # MERL directions (some below the horizon) ...
+    wi = np.concatenate([wi, _dirs(rng, 500)])  # ... and random ones
+    wo = np.concatenate([wo, _dirs(rng, 500)])
+    for params in (
+        run._params(),
+        twoscale.TwoScaleParams.conductor(
+            beta=0.02, p=0.6, eta=(1.2, 0.9, 0.4), k=(6.0, 4.0, 2.5), sigma_s=0.05, b=8.0, c=1.3
+        ),
+    ):
+        ref = np.asarray(twoscale.brdf(params, wi, wo))
+        new = numpy_model.brdf(params.to_dict(), wi, wo)
+        assert np.array_equal(ref == 0, new == 0)
+        ok = ref > 0
+        np.testing.assert_allclose(new[ok], ref[ok], rtol=1e-6)
+    x = numpy_model.pack(params.to_dict())
+    assert x.shape == (11,)
+    np.testing.assert_array_equal(numpy_model.pack(numpy_model.unpack(x)), x)
+
+
+def test_benchmark_scripts_run_on_tiny_sizes(tmp_path):
+    assert run.main(["--smoke", "--only", "variants", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "variants.md").read_text()
+    assert "specular only" in text and "Load average" in text
+    # Trade pieces on a tiny grid: errors of the variants against the exact path.
+    rows = []
+    body = run._errors(np.array([1.0, 2.0]), np.array([1.0, 2.5]))
+    assert body == (0.2, 0.1)
+    rows = [[0, 1.0, 0, 0, 0.1], [0, 2.0, 0, 0, 0.05], [0, 3.0, 0, 0, 0.2]]
+    assert run._pareto(rows, 1, 4) == [True, True, False]
