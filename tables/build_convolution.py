@@ -1,22 +1,24 @@
-"""Generate ``twoscale/data/convolution.npz``: the compact lobe ``(S*D)(θ_h)`` table.
+"""Generate ``twoscale/data/convolution.npz``: tabulated values of the lobe ``(S*D)(θ_h)``.
 
-Run from the repository root: ``python -m tables.build_convolution`` (deterministic, one core,
-a few minutes). Representation (see :mod:`twoscale.convolution`):
+Run from the repository root: ``python -m tables.build_convolution`` (deterministic, one process,
+a few minutes on 2 cores). Representation (see :mod:`twoscale.convolution`):
 
-``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + Σ_{j<K} a_j T_j(2t − 1)``, ``t = ξ/ξ_end``,
-``ξ = ½ log(1 + sin²θ_h / w²)``, ``w² = 1/(1 + 4u²) + β²``,
+``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t)``
 
-per node of a grid over ``(log β, log p, log(c−1), asinh u)``; components
-``(log k, log ξ_end, a_0 … a_{K−1})``. ``k = ⟨sin²θ_m⟩/(2⟨cos²θ_m⟩)`` (under ``D dω``) makes the
-form exact at ``u = 0``; ``ξ_end`` is where the lobe falls to ``1e-4`` of its peak.
-
-The lobe is computed with the quadrature of :func:`twoscale.convolution.lobe_exact`
-(same nodes, fewer of them), factorised: for one ``(β, p)`` and one ``θ_h`` the geometry
-(``1 ∓ μ``, ``D`` weights) is shared by every ``(c, u)``.
+``g`` is tabulated at the nodes of a 5-D grid (``values``, float32: the values are O(10), so
+float32's 6e-8 relative rounding is far below the interpolation error, and the file is half
+the size); ``t ∈ [0, 1]`` is the normalised angle of
+:func:`twoscale.convolution.normalised_angle` (``θ_h = 0`` at ``t = 0``, ``θ_h = π/2`` at
+``t = 1``), whose per-node parameters ``(log ζ_end, log ζ_π, log T_max)`` are stored in the extra
+``map`` (4-D, analytic :func:`twoscale.convolution.map_params`). ``k = L(π/2)/L(0)`` at
+``u = 0`` (where ``L = A cos²θ_h + B sin²θ_h`` exactly) is the extra ``log_k`` over
+``(ln β, ln p)``. The θ_h of each t node is found by bisection on the same jnp function the
+library evaluates, and the lobe there by the exact quadrature (:func:`lobe_exact`, fewer nodes).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -29,138 +31,122 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from twoscale import convolution as conv  # noqa: E402
-from twoscale.tables import DATA_DIR, Axis, save_table  # noqa: E402
+from twoscale.tables import DATA_DIR, Axis  # noqa: E402
 
 SETTINGS = {
-    "n_beta": 12,
-    "n_p": 10,
+    "n_beta": 14,
+    "n_p": 12,
     "n_c": 8,
     "n_u": 20,
+    "n_t": 40,
     "n_theta_quad": 61,
-    "n_phi_quad": 49,
-    "n_theta_h_geom": 44,
-    "n_theta_h_lin": 24,
-    "theta_h_min": 1e-4,
-    "K": conv.N_COEFFS,
-    "fit_floor": 1e-4,
-    "fit_floor_fade": 1e-5,
+    "n_phi_quad": 61,
+    "bisection_steps": 60,
 }
 
 
 def axes(s=SETTINGS):
-    """The four table axes (coordinates as in :mod:`twoscale.convolution`)."""
+    """The five table axes (coordinates as in :mod:`twoscale.convolution`)."""
     return (
         Axis("log_beta", math.log(1e-3), 0.0, s["n_beta"], "ln β"),
         Axis("log_p", math.log(0.2), math.log(5.0), s["n_p"], "ln p"),
         Axis("log_c_minus_1", math.log(0.01), math.log(4.0), s["n_c"], "ln(c − 1)"),
         Axis("asinh_u", 0.0, math.asinh(1000.0), s["n_u"], "asinh u"),
+        Axis("t", 0.0, 1.0, s["n_t"], "normalised angle (convolution.normalised_angle)"),
     )
 
 
-def theta_h_samples(s=SETTINGS) -> np.ndarray:
-    """Shared θ_h samples: 0, geometric from θ_min to π/2 (narrow lobes), uniform (wide ones)."""
-    geo = np.geomspace(s["theta_h_min"], 0.5 * np.pi, s["n_theta_h_geom"])
-    lin = np.linspace(0.0, 0.5 * np.pi, s["n_theta_h_lin"])
-    return np.unique(np.concatenate([[0.0], geo, lin]))
+def _theta_of_t(t, u, beta, q, log_map, steps):
+    """θ_h with ``normalised_angle(cos θ_h) = t`` by bisection (t increases with θ_h)."""
+    lo = jnp.zeros_like(t)
+    hi = jnp.full_like(t, 0.5 * math.pi)
 
+    def body(_, bounds):
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        below = conv.normalised_angle(jnp.cos(mid), u, beta, q, log_map) < t
+        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
 
-def _grid_lobe_fn(n_theta, n_phi):
-    """``L[θ_h, c, u]`` for one ``(β, p)``: geometry per θ_h, then every (c, u) at once."""
-
-    def one_theta(theta_h, beta, p, cs, us):
-        geom = conv._quadrature_geometry(theta_h, 0.5 * jnp.pi - theta_h, beta, p, n_theta, n_phi)
-        d_w, mu2, q, pw = geom
-        log_term = jnp.log1p(4.0 * us[:, None, None, None] ** 2 * q)  # (u, 4, nθ, nφ)
-
-        def per_c(c):
-            s_val = mu2 * jnp.exp(-0.5 * (c + 1.0) * log_term)
-            ring = 2.0 * jnp.pi * jnp.sum(s_val * pw, axis=-1)
-            return jnp.sum(d_w * ring, axis=(-2, -1))  # (u,)
-
-        return jax.lax.map(per_c, cs)  # (c, u)
-
-    @jax.jit
-    def fn(thetas, beta, p, cs, us):
-        return jax.lax.map(lambda th: one_theta(th, beta, p, cs, us), thetas)
-
-    return fn
-
-
-def fit_nodes(theta_h, lobes, betas, us, s=SETTINGS):
-    """Weighted linear least squares of the log-lobe residual; returns components (..., 2+K)."""
-    k_ = s["K"]
-    # k from u = 0 (first u node): L = A cos² + B sin² there, k = B/A = L(π/2)/L(0).
-    assert us[0] == 0.0 and theta_h[0] == 0.0 and theta_h[-1] == 0.5 * np.pi
-    k = lobes[..., -1, :, :1] / lobes[..., 0, :, :1]  # (β, p, c, 1)
-    s2 = np.sin(theta_h) ** 2
-    c2 = np.cos(theta_h) ** 2
-    # lobes: (β, p, θ, c, u) -> (β, p, c, u, θ)
-    lob = np.moveaxis(lobes, 2, -1)
-    log_l = np.log(lob)
-    w2 = (
-        1.0 / (1.0 + 4.0 * us**2)[None, None, None, :, None] + betas[:, None, None, None, None] ** 2
-    )
-    xi = 0.5 * np.log1p(s2 / w2)
-    rel = log_l - log_l.max(axis=-1, keepdims=True)
-    floor = math.log(s["fit_floor"])
-    # ξ_end: last crossing of the 1e-4 level (linear in ξ between samples), else ξ(π/2).
-    n_t = rel.shape[-1]
-    above = rel >= floor
-    last = n_t - 1 - np.argmax(above[..., ::-1], axis=-1)  # last sample at or above the level
-    inside = last == n_t - 1
-    i0 = np.minimum(last, n_t - 2)
-    take = lambda a, i: np.take_along_axis(a, i[..., None], -1)[..., 0]  # noqa: E731
-    r0, r1 = take(rel, i0), take(rel, i0 + 1)
-    x0, x1 = take(xi, i0), take(xi, i0 + 1)
-    frac = np.clip((r0 - floor) / np.where(r0 > r1, r0 - r1, 1.0), 0.0, 1.0)
-    xi_end = np.where(inside, xi[..., -1], x0 + frac * (x1 - x0))
-    t = xi / xi_end[..., None]
-    # Weights: 1 above the floor, fading linearly (in log) to 0 at fit_floor_fade; 0 for t > 1.
-    fade = math.log(s["fit_floor_fade"])
-    wt = np.clip((rel - fade) / (floor - fade), 0.0, 1.0) * (t <= 1.0 + 1e-12)
-    y = log_l - np.log(c2 + k[..., None] * s2)
-    v = np.polynomial.chebyshev.chebvander(2.0 * np.minimum(t, 1.0) - 1.0, k_ - 1)
-    a_mat = np.einsum("...ti,...t,...tj->...ij", v, wt, v) + 1e-10 * np.eye(k_)
-    b_vec = np.einsum("...ti,...t,...t->...i", v, wt, y)
-    coef = np.linalg.solve(a_mat, b_vec[..., None])[..., 0]
-    kk = np.broadcast_to(k, xi_end.shape)
-    return np.concatenate([np.log(kk)[..., None], np.log(xi_end)[..., None], coef], axis=-1)
+    lo, hi = jax.lax.fori_loop(0, steps, body, (lo, hi))
+    theta = 0.5 * (lo + hi)
+    return jnp.where(t <= 0.0, 0.0, jnp.where(t >= 1.0, 0.5 * math.pi, theta))
 
 
 def build(s=SETTINGS, out=None, verbose=True):
     t0 = time.time()
     ax = axes(s)
-    betas, ps, cs, us = (np.exp(ax[0].nodes()), np.exp(ax[1].nodes()), None, None)
+    betas, ps = np.exp(ax[0].nodes()), np.exp(ax[1].nodes())
     cs = 1.0 + np.exp(ax[2].nodes())
     us = np.sinh(ax[3].nodes())
     us[0] = 0.0
-    theta_h = theta_h_samples(s)
-    fn = _grid_lobe_fn(s["n_theta_quad"], s["n_phi_quad"])
-    lobes = np.empty((len(betas), len(ps), len(theta_h), len(cs), len(us)))
+    ts = ax[4].nodes()
+    nq, nphi = s["n_theta_quad"], s["n_phi_quad"]
+
+    exact = jax.jit(lambda ct, b, p, c, u: conv.lobe_exact(ct, b, p, c, u, n_theta=nq, n_phi=nphi))
+
+    # k = L(π/2)/L(0) at u = 0, per (β, p).
+    bb, pp = np.meshgrid(betas, ps, indexing="ij")
+    ends = np.asarray(
+        exact(np.array([1.0, 0.0])[None, None, :], bb[..., None], pp[..., None], 2.0, 0.0)
+    )
+    log_k = np.log(ends[..., 1] / ends[..., 0])
+
+    # Map parameters at every (β, p, c, u) node.
+    grid = np.meshgrid(betas, ps, cs, us, indexing="ij")
+    log_map = np.asarray(conv.map_params(*(jnp.asarray(g) for g in grid)))
+
+    @jax.jit
+    def node_lobes(beta, p, lk, lmap):
+        # (c, u, t) for one (β, p): θ_h at the t nodes, then the exact lobe there.
+        cc, uu, tt = jnp.meshgrid(jnp.asarray(cs), jnp.asarray(us), jnp.asarray(ts), indexing="ij")
+        q = conv.shape_exponent(p)
+        theta = _theta_of_t(tt, uu, beta, q, lmap[:, :, None, :], s["bisection_steps"])
+        ct = jnp.cos(theta)
+        lob = conv.lobe_exact(ct, beta, p, cc, uu, n_theta=nq, n_phi=nphi)
+        base = ct * ct + jnp.exp(lk) * jnp.sin(theta) ** 2
+        return jnp.log(lob) - jnp.log(base), lob
+
+    values = np.empty((len(betas), len(ps), len(cs), len(us), len(ts)))
     for i, b in enumerate(betas):
         for j, p in enumerate(ps):
-            lobes[i, j] = np.asarray(
-                fn(jnp.asarray(theta_h), b, p, jnp.asarray(cs), jnp.asarray(us))
-            )
+            g, lob = node_lobes(b, p, log_k[i, j], jnp.asarray(log_map[i, j]))
+            lob = np.asarray(lob)
+            if not np.all(np.isfinite(lob)) or np.any(lob <= 0):
+                raise RuntimeError(f"non-finite or non-positive lobe at beta={b}, p={p}")
+            values[i, j] = np.asarray(g)
         if verbose:
             print(f"beta {i + 1}/{len(betas)}  {time.time() - t0:.1f} s", flush=True)
-    if not np.all(np.isfinite(lobes)) or np.any(lobes <= 0):
-        raise RuntimeError("non-finite or non-positive lobe values")
-    comps = fit_nodes(theta_h, lobes, betas, us, s)
     seconds = time.time() - t0
-    save_table(
-        out or DATA_DIR / "convolution.npz",
-        comps,
-        ax,
-        name="convolution",
-        version=1,
-        components=["log_k", "log_xi_end"] + [f"a{j}" for j in range(s["K"])],
-        generator={**s, "module": "tables.build_convolution"},
-        build_seconds=seconds,
-    )
+    _save(out or DATA_DIR / "convolution.npz", values, ax, log_k, log_map, s, seconds)
     if verbose:
-        print(f"wrote convolution table {comps.shape} in {seconds:.1f} s")
-    return comps
+        print(f"wrote convolution table {values.shape} in {seconds:.1f} s")
+    return values
+
+
+def _save(path, values, ax, log_k, log_map, s, seconds):
+    """The :func:`twoscale.tables.save_table` format, with ``values`` stored as float32."""
+    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(log_k))):
+        raise ValueError("convolution table has non-finite values")
+    if not np.all(np.isfinite(log_map)):
+        raise ValueError("convolution map parameters are non-finite")
+    meta = {
+        "name": "convolution",
+        "version": 2,
+        "axes": [a.__dict__ for a in ax],
+        "components": [],
+        "generator": {**s, "module": "tables.build_convolution", "values_dtype": "float32"},
+        "build_seconds": seconds,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(
+        tmp,
+        values=values.astype(np.float32),
+        meta=np.array(json.dumps(meta)),
+        log_k=log_k,
+        map=log_map,
+    )
+    tmp.replace(path)
 
 
 if __name__ == "__main__":

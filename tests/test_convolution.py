@@ -26,7 +26,7 @@ def lobe64(*args, **kw):
     return lobe(*args, **kw)
 
 
-# Compiled once: eager evaluation of the 4-D spline (256 terms) is slow under a test loop.
+# Compiled once: eager evaluation (slice + lookups) is slow under a test loop.
 _table_jit = jax.jit(lambda *a: lobe(*a))
 _table_grad = jax.jit(jax.grad(lambda *a: jnp.sum(lobe(*a)), argnums=(0, 1, 2, 3, 4)))
 
@@ -109,17 +109,39 @@ def test_exact_converged_in_node_count():
 # ---------------------------------------------------------------- table accuracy
 
 
+# Measured bounds of the table (tables/CONVOLUTION.md), relative error where lobe > 1e-3 peak:
+# whole-domain worst case (a large-p, large-u lobe just past D's cut-off, ~2e-3 of its peak),
+# median and fraction of points above 1e-2, worst in the authors' box.
+TABLE_WORST = 25.0
+MEDIAN_BOUND = 1e-3
+FRAC_BOUND = 0.15
+BOX_BOUND = 0.5
+
+
 def test_table_vs_exact_random():
     """Random sets over the whole domain; bounds are the measured ones (tables/CONVOLUTION.md)."""
     from tables.check_convolution import errors
 
     e = errors(n=24, seed=3, exact_nodes=61)
+    assert e["finite"]
     pts = e["rel"][e["mask"]]
-    assert np.median(pts) < 1e-2
+    assert np.median(pts) < MEDIAN_BOUND
+    assert np.mean(pts > 1e-2) < FRAC_BOUND
     box = (e["beta"] <= 0.35) & (e["c"] <= 3.02) & (e["u"] <= 100)
     box_pts = e["rel"][box][e["mask"][box]]
-    assert np.median(box_pts) < 5e-3
-    assert np.mean(box_pts > 1e-2) < 0.3
+    assert box_pts.max() < BOX_BOUND
+
+
+def test_table_no_catastrophic_point():
+    """No random point over the whole domain is off by more than the documented worst case."""
+    from tables.check_convolution import errors
+
+    e = errors(n=64, seed=11, exact_nodes=61)
+    assert e["finite"]
+    assert e["rel"][e["mask"]].max() < TABLE_WORST
+    # Below 1e-3 of the peak the table stays bounded too (no wild values in the far tail).
+    ratio = e["table"] / e["exact"].max(axis=1, keepdims=True)
+    assert np.all(ratio < 2.0) and np.all(ratio >= 0.0)
 
 
 # Authors' table (MODEL.md §3.8): p, β, c, then (s, u') at u = 0.5, 1, 6, 30.
@@ -223,8 +245,8 @@ def test_jit_equals_eager_and_hot_path():
     eager = lobe(ct, *args)
     jitted = jax.jit(lambda x: lobe(x, *args))(ct)
     np.testing.assert_allclose(eager, jitted, rtol=1e-12)
-    spline = lobe_spline(0.04, 1.7, 2.5)
-    hot = lobe_from_components(spline(jnp.arcsinh(12.0)), ct, 0.04, 12.0)
+    lobe_slice = lobe_spline(0.04, 1.7, 2.5)
+    hot = lobe_from_components(lobe_slice, ct, jnp.float64(12.0))
     np.testing.assert_allclose(hot, eager, rtol=1e-12)
     ex_e = lobe(ct[:3], *args, path="exact")
     ex_j = jax.jit(lambda x: lobe(x, *args, path="exact"))(ct[:3])

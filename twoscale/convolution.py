@@ -29,9 +29,10 @@ Two evaluation paths (``path=``):
     is differentiable in every argument. The reference of this module.
 
 ``"tables"``
-    The compact representation (see :func:`lobe_from_components`), per-node parameters
-    interpolated over ``(log β, log p, log(c−1), asinh u)`` by the C² spline of
-    :mod:`twoscale.tables`.
+    Tabulated values of ``log L − log(cos²θ_h + k sin²θ_h)`` on a 5-D grid over
+    ``(ln β, ln p, ln(c−1), asinh u, t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
+    onto ``[0, 1]`` for every parameter set, interpolated by the C² spline of
+    :mod:`twoscale.tables` (see :class:`LobeSlice` and ``tables/CONVOLUTION.md``).
 """
 
 from __future__ import annotations
@@ -39,26 +40,28 @@ from __future__ import annotations
 import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from twoscale._numerics import float_dtype, safe_log, safe_sqrt
 from twoscale.distribution import log_d0
+from twoscale.tables import Spline
 
 __all__ = [
-    "N_COEFFS",
+    "LobeSlice",
     "fit_params",
     "lobe",
     "lobe_exact",
     "lobe_from_components",
     "lobe_spline",
     "lobe_table",
+    "map_params",
+    "normalised_angle",
+    "shape_exponent",
     "small_scale",
 ]
-
-#: Chebyshev coefficients per table node (the polynomial part of the compact form).
-N_COEFFS = 10
 
 #: tanh-sinh truncation: at |t| = 3.2 the node sits 2e-17 (relative) from the interval end.
 _TS_T = 3.2
@@ -183,15 +186,32 @@ def lobe(cos_theta_h, beta, p, c, u, *, path: str = "tables", **kwargs):
 
 
 # --------------------------------------------------------------------------------------------
-# Compact table path.
+# Compact table path: tabulated values of log L in a normalised angle t (see tables/CONVOLUTION.md).
 #
-# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + P(t),  P(t) = Σ_{j<K} a_j T_j(2t − 1),
-# t = ξ/ξ_end,  ξ = ½ log(1 + sin²θ_h/w²),  w² = 1/(1 + 4u²) + β²,
-# and for t > 1 the linear continuation P(1) + min(P'(1), 0)(t − 1) (C¹ where P'(1) ≤ 0).
-# Components per node: (log k, log ξ_end, a_0 … a_{K−1}), over (ln β, ln p, ln(c−1), asinh u).
+# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t),
+# g a 5-D C² cubic B-spline of *values*; t ∈ [0, 1] covers θ_h ∈ [0, π/2] for every parameter set.
+#
+# Angle coordinate (per sample, cheap):
+#   a² = 1/(1 + 4u²)                      S's angular width² (sin units)
+#   τ²/τ₀² = sin²θ_h / ((cos²θ_h + a²) a²) scaled angle; the a² in the bracket caps tan θ_h at the
+#                                          horizon (1/a), so θ_h = π/2 sits at a finite coordinate
+#   τ₀² = a²/(a² + β²),  q = smin(p, 1)   (q < 1 resolves D's cusp at θ = 0 for p < 1)
+#   z = τ₀^{2q} [(1 + τ²/τ₀²)^q − 1],      ζ = log(1 + z)/(2q)   (≈ log τ in the tails)
+#   s = ζ/ζ_end,  t = [λ ζ/ζ_π + (1 − λ) s (1 + s⁴)^{−1/4}] / T_max
+# ζ_end: analytic estimate of where the lobe falls to 1e-4 of its peak (two-tail model, below);
+# ζ_π = ζ(π/2); T_max = the bracket at ζ_π. About 60 % of the t nodes resolve the lobe's body
+# (s ≤ 1), the rest (uniform in ζ) the far tail and the horizon (lobes peaked at grazing for
+# small p and large β). (log ζ_end, log ζ_π, log T_max) are smooth functions of (β, p, c, u);
+# they are tabulated on the same parameter grid (extra ``map``) so that a sample pays one 1-D
+# lookup instead of ~20 transcendentals, and log k on (ln β, ln p) (extra ``log_k``).
 # --------------------------------------------------------------------------------------------
 
 TABLE_NAME = "convolution"
+
+#: Share of the normalised angle t laid uniformly in ζ over the whole hemisphere.
+MAP_LAMBDA = 0.4
+#: Level (relative to the peak) at which the analytic end estimate ζ_end is placed.
+MAP_END_LEVEL = 1e-4
 
 
 def _table():
@@ -204,78 +224,161 @@ def _coords(beta, p, c):
     return jnp.log(beta), jnp.log(p), jnp.log(c - 1.0)
 
 
-def lobe_spline(beta, p, c, dtype=jnp.float64):
-    """Slice the table at scalar ``(β, p, c)``: a 1-D :class:`~twoscale.tables.Spline` over ``asinh u``.
+def shape_exponent(p):
+    """``q = smin(p, 1) = (p⁻⁴ + 1)^{−1/4}``: the exponent of the angle coordinate."""
+    return (p**-4.0 + 1.0) ** -0.25
 
-    Call it once per parameter set; evaluate per sample with :func:`lobe_from_components`
-    (``comps = spline(jnp.arcsinh(u))``).
+
+def _zeta(s2, c2, beta, q, a2):
+    """``ζ`` from ``sin²θ_h``, ``cos²θ_h`` (see the comment above); finite gradients everywhere."""
+    log_t02 = -jnp.log1p(beta * beta / a2)  # log τ₀²
+    x = s2 / ((c2 + a2) * a2)  # τ²/τ₀² ≥ 0
+    z = jnp.exp(q * log_t02) * jnp.expm1(q * jnp.log1p(x))
+    return jnp.log1p(z) / (2.0 * q)
+
+
+def _t_bracket(zeta, zeta_end, zeta_pi):
+    s = zeta / zeta_end
+    s2 = s * s
+    return MAP_LAMBDA * zeta / zeta_pi + (1.0 - MAP_LAMBDA) * s * (1.0 + s2 * s2) ** -0.25
+
+
+def map_params(beta, p, c, u):
+    """``(log ζ_end, log ζ_π, log T_max)`` of the angle coordinate (analytic; broadcasting).
+
+    Two-tail model of the lobe (small angles): relative to ``S(0) ∫D``, the lobe is
+    ``≈ [D(θ)/d0 · ρ + S(θ)] / L₀`` with ``ρ = d0 ∫S dω`` and ``L₀ = ρ/(1 + ρ)``;
+    ``∫S dω ≈ π (1 − (1+4u²)^{−(c−1)/2}) / (2(c−1)u²)``. Its 1e-4 point is the larger of D's
+    (``(tan θ/β)^{2p} = ln((1+ρ)/ε)``) and S's (``2u tan θ = ((1+ρ)/(ερ))^{1/(c+1)}``), combined
+    as a root sum of squares; ``ζ_end`` is then softly capped at ``ζ_π``.
     """
-    spline = _table().spline(dtype)
-    return spline.slice(*_coords(beta, p, c))
+    a2 = 1.0 / (1.0 + 4.0 * u * u)
+    q = shape_exponent(p)
+    l4u = jnp.log1p(4.0 * u * u)
+    big_a = 0.5 * (c - 1.0) * l4u
+    safe_a = jnp.where(big_a > 0.0, big_a, 1.0)
+    ratio_a = jnp.where(big_a > 0.0, -jnp.expm1(-safe_a) / safe_a, 1.0)  # (1 − e^{−A})/A
+    safe_u2 = jnp.where(u > 0.0, u * u, 1.0)
+    ratio_u = jnp.where(u > 0.0, l4u / (2.0 * safe_u2), 2.0)  # log(1+4u²)/(2u²)
+    log_rho = log_d0(beta, p) + jnp.log(0.5 * math.pi * ratio_a * ratio_u)
+    log_1p_rho = jnp.logaddexp(0.0, log_rho)
+    log_eps = math.log(MAP_END_LEVEL)
+    tan_d = beta * (log_1p_rho - log_eps) ** (0.5 / p)
+    tan_s = jnp.sqrt(a2) * jnp.exp((log_1p_rho - log_eps - log_rho) / (c + 1.0))
+    tan2_end = tan_d * tan_d + tan_s * tan_s
+    s2_end = tan2_end / (1.0 + tan2_end)
+    zeta_raw = _zeta(s2_end, 1.0 - s2_end, beta, q, a2)
+    one = jnp.ones_like(zeta_raw)
+    zeta_pi = _zeta(one, 0.0 * one, beta, q, a2)
+    zeta_end = (zeta_raw**-8.0 + zeta_pi**-8.0) ** -0.125  # soft min(ζ_end, ζ_π)
+    t_max = _t_bracket(zeta_pi, zeta_end, zeta_pi)
+    return jnp.stack([jnp.log(zeta_end), jnp.log(zeta_pi), jnp.log(t_max)], axis=-1)
 
 
-def _chebyshev(t, coeffs):
-    """``Σ a_j T_j(x)`` and its derivative in ``t`` (``x = 2t − 1``), by the three-term recurrence."""
-    x = 2.0 * t - 1.0
-    t_prev, t_cur = jnp.ones_like(x), x
-    d_prev, d_cur = jnp.zeros_like(x), jnp.ones_like(x)  # dT_j/dx
-    val = coeffs[..., 0] + coeffs[..., 1] * x
-    der = coeffs[..., 1]
-    for j in range(2, coeffs.shape[-1]):
-        t_next = 2.0 * x * t_cur - t_prev
-        d_next = 2.0 * t_cur + 2.0 * x * d_cur - d_prev
-        val = val + coeffs[..., j] * t_next
-        der = der + coeffs[..., j] * d_next
-        t_prev, t_cur, d_prev, d_cur = t_cur, t_next, d_cur, d_next
-    return val, 2.0 * der
-
-
-def lobe_from_components(comps, cos_theta_h, beta, u):
-    """Evaluate the compact form from interpolated components ``comps`` (..., 2 + K).
-
-    ``log L = log(cos²θ_h + k sin²θ_h) + P(t)`` (see the comment above); ``beta`` and ``u``
-    enter through the analytic width ``w² = 1/(1 + 4u²) + β²``.
-    """
+def normalised_angle(cos_theta_h, u, beta, q, log_map):
+    """The table's angle coordinate ``t ∈ [0, 1]`` (``log_map`` from :func:`map_params`)."""
     ct = jnp.clip(cos_theta_h, 0.0, 1.0)
     c2 = ct * ct
     s2 = (1.0 - ct) * (1.0 + ct)
-    log_k, log_xi_end, coeffs = comps[..., 0], comps[..., 1], comps[..., 2:]
-    w2 = 1.0 / (1.0 + 4.0 * u * u) + beta * beta
-    t = 0.5 * jnp.log1p(s2 / w2) * jnp.exp(-log_xi_end)
-    t_in = jnp.minimum(t, 1.0)  # double where: the polynomial is only used on [0, 1]
-    val_in, _ = _chebyshev(t_in, coeffs)
-    val_1, der_1 = _chebyshev(jnp.ones_like(t), coeffs)
-    poly = jnp.where(t <= 1.0, val_in, val_1 + jnp.minimum(der_1, 0.0) * (t - 1.0))
-    return jnp.exp(jnp.log(c2 + jnp.exp(log_k) * s2) + poly)
+    a2 = 1.0 / (1.0 + 4.0 * u * u)
+    zeta = _zeta(s2, c2, beta, q, a2)
+    zeta_end, zeta_pi, t_max = (jnp.exp(log_map[..., j]) for j in range(3))
+    return _t_bracket(zeta, zeta_end, zeta_pi) / t_max
+
+
+@functools.cache
+def _extra_coeffs(name: str, n_axes: int) -> np.ndarray:
+    from twoscale.tables import bspline_coefficients
+
+    return bspline_coefficients(_table().extras[name], n_axes)
+
+
+def _extra_spline(name, n_axes, dtype) -> Spline:
+    axes = _table().axes[:n_axes]
+    return Spline(
+        jnp.asarray(_extra_coeffs(name, n_axes), dtype),
+        tuple(a.lo for a in axes),
+        tuple(a.step for a in axes),
+        tuple(a.n for a in axes),
+    )
+
+
+def _splines(dtype):
+    """``(g, log_map, log_k)`` splines of the packaged table in ``dtype`` (NumPy parts cached)."""
+    return (
+        _table().spline(dtype),
+        _extra_spline("map", 4, dtype),
+        _extra_spline("log_k", 2, dtype),
+    )
+
+
+def _spline_dtype(dtype):
+    dtype = jnp.dtype(dtype)
+    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
+        dtype = jnp.dtype(jnp.float32)
+    return dtype.name
+
+
+class LobeSlice(eqx.Module):
+    """The table sliced at one ``(β, p, c)``: per sample a 1-D lookup of the angle map and a
+    2-D cubic lookup (16 terms) of ``g`` in ``(asinh u, t)``. Call as ``slice(cos θ_h, u)``."""
+
+    g: Spline
+    log_map: Spline
+    log_k: jax.Array
+    beta: jax.Array
+    q: jax.Array
+
+    def __call__(self, cos_theta_h, u):
+        au = jnp.arcsinh(u)
+        t = normalised_angle(cos_theta_h, u, self.beta, self.q, self.log_map(au))
+        ct = jnp.clip(cos_theta_h, 0.0, 1.0)
+        base = ct * ct + jnp.exp(self.log_k) * (1.0 - ct) * (1.0 + ct)
+        return jnp.exp(jnp.log(base) + self.g(au, t))
+
+
+def lobe_spline(beta, p, c, dtype=jnp.float64) -> LobeSlice:
+    """Slice the table at scalar ``(β, p, c)`` (once per parameter set); see :class:`LobeSlice`."""
+    g, log_map, log_k = _splines(_spline_dtype(dtype))
+    dt = g.coeffs.dtype
+    beta, p, c = (jnp.asarray(x, dt) for x in (beta, p, c))
+    lb, lp, lc = _coords(beta, p, c)
+    return LobeSlice(
+        g.slice(lb, lp, lc), log_map.slice(lb, lp, lc), log_k(lb, lp), beta, shape_exponent(p)
+    )
+
+
+def lobe_from_components(lobe_slice: LobeSlice, cos_theta_h, u):
+    """Evaluate a sliced table at per-sample ``cos θ_h`` and ``u`` (broadcasting)."""
+    return lobe_slice(cos_theta_h, u)
 
 
 def lobe_table(cos_theta_h, beta, p, c, u):
     """``(S*D)(θ_h)`` from the compact table (broadcasting; dtype of the arguments)."""
     dtype = float_dtype(cos_theta_h, beta, p, c, u)
     args = jnp.broadcast_arrays(*(jnp.asarray(a, dtype) for a in (cos_theta_h, beta, p, c, u)))
-    ct, beta, p, c, u = args
-    spline = _table().spline(dtype)
+    shape = args[0].shape
+    flat = [a.reshape(-1) for a in args]
 
-    def components(b, pp, cc, au):
-        # Slice then 1-D lookup: 3 small contractions instead of the 256-term 4-D sum (whose
-        # unrolled graph is slow to trace and compile).
-        return spline.slice(*_coords(b, pp, cc))(au)
+    def one(a):
+        ct, b, pp, cc, uu = a
+        return lobe_spline(b, pp, cc, dtype)(ct, uu)
 
-    flat = [a.reshape(-1) for a in (beta, p, c, jnp.arcsinh(u))]
-    comps = jax.vmap(components)(*flat).reshape(*ct.shape, -1)
-    return lobe_from_components(comps, ct, beta, u).astype(dtype)
+    # Sequential batches: each slice reads a 4⁵-block neighbourhood of the 5-D coefficient
+    # tensor (a vmap over every point would materialise one block per point at once).
+    return jax.lax.map(one, tuple(flat), batch_size=8).reshape(shape).astype(dtype)
 
 
 def fit_params(beta, p, c, u, *, n_points: int = 1000, path: str = "exact"):
     """Parameters of the authors' 2-parameter form ``s [1 + (2u' sin θ_h)²]^{−(c+1)/2}`` (NumPy).
 
     Fitted like the authors (MODEL.md §3.8): ``n_points`` uniform in ``sin θ_h ∈ [0, 1)``,
-    least squares on the lobe values. Also returns the compact components at this point.
-    For regression checks against the authors' table, not for hot paths (scalar arguments).
+    least squares on the lobe values. For regression checks against the authors' table, not for
+    hot paths (scalar arguments).
 
     Returns:
-        dict with ``s``, ``u_prime`` (the authors' form) and ``components`` (``log k``,
-        ``log ξ_end``, ``a_j`` of the compact table, interpolated).
+        dict with ``s``, ``u_prime`` (the authors' form) and ``map`` (``log ζ_end``,
+        ``log ζ_π``, ``log T_max`` of the table's angle coordinate at this point).
     """
     from scipy.optimize import least_squares
 
@@ -288,5 +391,9 @@ def fit_params(beta, p, c, u, *, n_points: int = 1000, path: str = "exact"):
         return q[0] * (1.0 + (2.0 * q[1] * sin_t) ** 2) ** (-e) - vals
 
     fit = least_squares(resid, [vals[0], max(u, 0.05)], method="lm")
-    comps = _table().spline(jnp.float64)(*_coords(beta, p, c), jnp.arcsinh(u))
-    return {"s": float(fit.x[0]), "u_prime": float(abs(fit.x[1])), "components": np.asarray(comps)}
+    args = (jnp.float64(x) for x in (beta, p, c, u))
+    return {
+        "s": float(fit.x[0]),
+        "u_prime": float(abs(fit.x[1])),
+        "map": np.asarray(map_params(*args)),
+    }

@@ -160,8 +160,8 @@ def _convolved_lobe(cos_h, beta, p, c, u, path: str):
     """``(S*D)(θ_h)`` per sample and channel; tables: sliced once at the shared (β, p, c)."""
     if path == "exact":
         return convolution.lobe(cos_h, beta, p, c, u, path=path)
-    spline = convolution.lobe_spline(beta, p, c, jnp.result_type(cos_h, u))
-    return convolution.lobe_from_components(spline(jnp.arcsinh(u)), cos_h, beta, u)
+    lobe_slice = convolution.lobe_spline(beta, p, c, jnp.result_type(cos_h, u))
+    return convolution.lobe_from_components(lobe_slice, cos_h, u)
 
 
 # ------------------------------------------------------------------------------------ composition
