@@ -288,3 +288,93 @@ def write_fit_pictures(result, data, out_dir, *, adapter=None) -> list[Path]:
         plot_lobes(model, out_dir / "lobes.png", data=data, lobe_model=lobe_model, title=title),
         plot_spheres(data, model, out_dir / "spheres.png", title=title),
     ]
+
+
+def _param_entries(params) -> dict:
+    """``{name: list of floats}`` of a parameter object (``to_dict()``) or a dict; skips ``None``
+    and non-numeric entries (``material``)."""
+    d = params if isinstance(params, dict) else params.to_dict()
+    out = {}
+    for name, value in d.items():
+        if value is None or isinstance(value, str):
+            continue
+        out[name] = [float(v) for v in np.atleast_1d(np.asarray(value, dtype=np.float64))]
+    return out
+
+
+def recovery_table(params, truth, std_errors=None) -> list[dict]:
+    """Fitted against true parameters, one row per scalar (per channel for η, k, ρ_d, f0).
+
+    Args:
+        params, truth: parameter objects with ``to_dict()`` (``TwoScaleParams`` or a baseline's)
+            or the dicts themselves; only names present in both are compared.
+        std_errors: optional ``{name: float | list | None}`` (``FitResult.std_errors``).
+    Returns:
+        Rows ``{"name", "true", "fit", "se", "rel", "pull"}``: ``rel = (fit − true)/|true|``
+        (``nan`` where ``true = 0``), ``pull = (fit − true)/se`` (``nan`` without a positive
+        standard error, e.g. a fixed parameter). Channels are suffixed ``[R]``, ``[G]``, ``[B]``
+        when there are three, ``[i]`` otherwise.
+    """
+    fit_d, true_d = _param_entries(params), _param_entries(truth)
+    se_d = {}
+    for name, value in (std_errors or {}).items():
+        if value is not None:
+            se_d[name] = [float(v) for v in np.atleast_1d(np.asarray(value, dtype=np.float64))]
+    rows = []
+    for name, fit_v in fit_d.items():
+        true_v = true_d.get(name)
+        if true_v is None:
+            continue
+        true_v = true_v * len(fit_v) if len(true_v) == 1 else true_v  # one value for all channels
+        se_v = se_d.get(name, [math.nan] * len(fit_v))
+        se_v = se_v * len(fit_v) if len(se_v) == 1 else se_v
+        for i, (f, t, s) in enumerate(zip(fit_v, true_v, se_v, strict=True)):
+            suffix = "" if len(fit_v) == 1 else f"[{'RGB'[i]}]" if len(fit_v) == 3 else f"[{i}]"
+            rows.append(
+                {
+                    "name": name + suffix,
+                    "true": t,
+                    "fit": f,
+                    "se": s,
+                    "rel": (f - t) / abs(t) if t != 0 else math.nan,
+                    "pull": (f - t) / s if s > 0 else math.nan,  # nan > 0 is False
+                }
+            )
+    return rows
+
+
+def plot_recovery(params, truth, path, *, std_errors=None, title=""):
+    """Fitted against true parameters (synthetic data): relative difference and pull per scalar.
+
+    Left: ``(fit − true)/|true|`` in % with ±1 standard error bars; right: the pull
+    ``(fit − true)/se`` with the ±2 band. Rows from :func:`recovery_table`; entries without a true
+    value ≠ 0 (left) or a standard error (right) are left out of that panel.
+    """
+    plt = _pyplot()
+    rows = recovery_table(params, truth, std_errors)
+    names = [r["name"] for r in rows]
+    y = np.arange(len(rows))[::-1]
+    rel = np.array([100.0 * r["rel"] for r in rows])
+    err = np.array([100.0 * r["se"] / abs(r["true"]) if r["true"] else math.nan for r in rows])
+    pull = np.array([r["pull"] for r in rows])
+    fig, (ax1, ax2) = plt.subplots(
+        1, 2, figsize=(9, 0.3 * len(rows) + 1.6), sharey=True, squeeze=True
+    )
+    ok = np.isfinite(rel)
+    ax1.errorbar(rel[ok], y[ok], xerr=np.where(np.isfinite(err[ok]), err[ok], 0.0), fmt="o", ms=4)
+    ax1.axvline(0.0, color="grey", lw=0.8)
+    ax1.set_xlabel("(fit − true) / |true|  (%), bars: ±1 standard error")
+    ax1.set_yticks(y, names)
+    ok = np.isfinite(pull)
+    ax2.axvspan(-2.0, 2.0, color="tab:green", alpha=0.12, lw=0)
+    ax2.plot(pull[ok], y[ok], "o", ms=4, color="tab:orange")
+    ax2.axvline(0.0, color="grey", lw=0.8)
+    ax2.set_xlabel("pull (fit − true) / standard error")
+    for ax in (ax1, ax2):
+        ax.grid(True, axis="x", alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)

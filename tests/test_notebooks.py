@@ -1,0 +1,139 @@
+"""The notebooks in ``notebooks/``: committed without outputs, and they run headless with figures.
+
+Each notebook is executed with nbclient in a fresh ``python3`` kernel of the interpreter running the
+tests (a kernel spec written for ``sys.executable`` into a temporary ``JUPYTER_PATH``, so that a
+``python3`` kernel registered elsewhere cannot run another environment), in a temporary working
+directory. A run passes when every cell executes without an error, no Python warning is printed,
+at least one ``image/png`` output is produced, and the kernel reports ``sys.executable`` to be
+this interpreter. The tests skip, naming the reason, when nbclient or ipykernel is missing
+(``pip install -e .[test]`` installs both).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
+NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
+EXPECTED = ("quickstart", "fitting", "speed_accuracy", "stability")
+#: Seconds allowed per cell: each notebook takes well under a minute in all on 2 cores; the margin
+#: absorbs a loaded CI machine (the longest cell, the fit, is ≈ 20 s on an idle one).
+CELL_TIMEOUT = 300
+X64_LINE = 'jax.config.update("jax_enable_x64", True)'
+#: A Python warning as ``warnings.showwarning`` prints it (``file:line: CategoryWarning: text``).
+WARNING_LINE = re.compile(r":\d+: \w*Warning: ")
+#: The cell appended to each executed copy: the kernel's interpreter.
+EXECUTABLE_PROBE = "import sys\nprint('sys.executable =', sys.executable)"
+
+
+def _ids(paths):
+    return [p.stem for p in paths]
+
+
+def _load_json(path: Path) -> dict:
+    with path.open(encoding="utf-8") as f:
+        return json.load(f)
+
+
+def _source(cell: dict) -> str:
+    src = cell.get("source", "")
+    return "".join(src) if isinstance(src, list) else src
+
+
+# ------------------------------------------------------------------------- committed notebooks
+def test_expected_notebooks_exist():
+    assert set(EXPECTED) <= {p.stem for p in NOTEBOOKS}, f"notebooks in {NOTEBOOK_DIR}: {NOTEBOOKS}"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
+def test_committed_without_outputs(path):
+    """nbformat 4, no outputs, no execution counts; float64 switched on in the first code cell."""
+    nb = _load_json(path)
+    assert nb["nbformat"] == 4
+    assert nb["metadata"].get("kernelspec", {}).get("name") == "python3"
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    assert code, f"{path.name} has no code cell"
+    for i, cell in enumerate(code):
+        assert cell.get("outputs") == [], f"{path.name}: code cell {i} has outputs (clear them)"
+        assert cell.get("execution_count") is None, f"{path.name}: code cell {i} has a count"
+    assert X64_LINE in _source(code[0]), f"{path.name}: the first code cell must call {X64_LINE}"
+
+
+# ------------------------------------------------------------------------- executed notebooks
+@pytest.fixture(scope="module")
+def kernel_name(tmp_path_factory):
+    """``"python3"``, from a kernel spec for ``sys.executable`` put first on ``JUPYTER_PATH``."""
+    pytest.importorskip("nbformat", reason="nbformat is not installed (pip install -e .[test])")
+    pytest.importorskip("nbclient", reason="nbclient is not installed (pip install -e .[test])")
+    pytest.importorskip(
+        "ipykernel", reason="no Jupyter kernel: ipykernel is not installed (pip install -e .[test])"
+    )
+    from ipykernel.kernelspec import write_kernel_spec
+
+    root = tmp_path_factory.mktemp("jupyter")
+    write_kernel_spec(root / "kernels" / "python3")  # argv[0] = sys.executable
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("JUPYTER_PATH", str(root))  # searched before the user and environment dirs
+        mp.setenv("JUPYTER_PLATFORM_DIRS", "1")  # jupyter_core's path-migration warning, off
+        from jupyter_client.kernelspec import KernelSpecManager, NoSuchKernel
+
+        try:
+            spec = KernelSpecManager().get_kernel_spec("python3")
+        except NoSuchKernel:  # pragma: no cover - only with a broken Jupyter installation
+            pytest.skip("no Jupyter kernel named python3 is available")
+        assert Path(spec.resource_dir) == root / "kernels" / "python3", spec.resource_dir
+        assert os.path.samefile(spec.argv[0], sys.executable), spec.argv
+        yield "python3"
+
+
+def _execute(path: Path, kernel: str, cwd: Path):
+    import nbformat
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(path, as_version=4)
+    nb.cells.append(nbformat.v4.new_code_cell(EXECUTABLE_PROBE))
+    client = NotebookClient(
+        nb,
+        kernel_name=kernel,
+        timeout=CELL_TIMEOUT,
+        allow_errors=False,  # the first failing cell raises CellExecutionError with its traceback
+        resources={"metadata": {"path": str(cwd)}},  # the kernel's working directory
+    )
+    t0 = time.perf_counter()
+    client.execute()
+    return nb, time.perf_counter() - t0
+
+
+def _outputs(nb):
+    for cell in nb.cells:
+        if cell.cell_type == "code":
+            yield from cell.outputs
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
+def test_notebook_runs(path, kernel_name, tmp_path, record_property):
+    nb, seconds = _execute(path, kernel_name, tmp_path)
+    record_property("seconds", round(seconds, 1))
+    outputs = list(_outputs(nb))
+
+    errors = [o for o in outputs if o.output_type == "error"]
+    assert not errors, f"{path.name}: {[(e.ename, e.evalue) for e in errors]}"
+    stderr = "".join(o.text for o in outputs if o.output_type == "stream" and o.name == "stderr")
+    warned = [line for line in stderr.splitlines() if WARNING_LINE.search(line)]
+    assert not warned, f"{path.name} printed warnings: {warned}"
+
+    pngs = [o for o in outputs if "image/png" in o.get("data", {})]
+    assert pngs, f"{path.name} produced no figure (no image/png output)"
+
+    probe = "".join(o.get("text", "") for o in nb.cells[-1].outputs if o.output_type == "stream")
+    executable = probe.strip().removeprefix("sys.executable =").strip()
+    assert os.path.samefile(executable, sys.executable), (executable, sys.executable)
+    # The working directory is the temporary one (nothing is written into the repository).
+    assert not list(NOTEBOOK_DIR.glob("*.png")) and not list(NOTEBOOK_DIR.glob("*.binary"))
