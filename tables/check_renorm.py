@@ -77,22 +77,45 @@ def edge_points() -> np.ndarray:
     return np.array([(a, b, d) for a in s for b in B for d in c])
 
 
-def _row(name: str, pts: np.ndarray, got: np.ndarray, want: np.ndarray) -> dict:
+_DOMAIN_TEXT = "s∈[0,1], B∈[1e-2,1e4] log-unif, c−1∈[1e-2,9] log-unif, plus edges"
+
+
+def _row(name: str, pts: np.ndarray, got: np.ndarray, want: np.ndarray, domain: str = "") -> dict:
+    """One report row (the keys ``tables/report.py`` reads, plus the p99 and the worst point)."""
     err = np.abs(got / want - 1.0)
     k = int(np.argmax(err))
+    worst = tuple(float(v) for v in pts[k])
+    p99 = float(np.quantile(err, 0.99))
     return {
+        "table": "renormalisation",
         "check": name,
+        "quantity": name,
+        "domain": domain or _DOMAIN_TEXT,
         "n": len(pts),
+        "n_points": len(pts),
         "max_rel_err": float(err.max()),
-        "p99_rel_err": float(np.quantile(err, 0.99)),
-        "worst_at(s,B,c)": tuple(float(v) for v in pts[k]),
+        "median_rel_err": float(np.median(err)),
+        "p99_rel_err": p99,
+        "worst_at(s,B,c)": worst,
+        "note": f"p99 {p99:.2e}; worst at (s, B, c) = ({worst[0]:.4g}, {worst[1]:.4g}, {worst[2]:.4g})",
     }
 
 
 def accuracy_rows(
-    n_random: int = 20000, n_scipy: int = 200, n_outside: int = 2000, seed: int = 0
+    n_random: int = 20000,
+    n_scipy: int = 200,
+    n_outside: int = 2000,
+    seed: int = 0,
+    *,
+    n_points: int | None = None,
 ) -> list[dict]:
-    """Measured relative errors (float64). Requires ``jax_enable_x64``; enables it."""
+    """Measured relative errors (float64). Requires ``jax_enable_x64``; enables it.
+
+    ``n_points`` (the argument ``tables/report.py`` passes) sets ``n_random`` and, scaled down,
+    ``n_scipy`` and ``n_outside``.
+    """
+    if n_points is not None:
+        n_random, n_scipy, n_outside = n_points, max(10, n_points // 10), max(100, n_points // 2)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -120,7 +143,16 @@ def accuracy_rows(
         p = random_points(n_outside, seed + 3)
         p[:, 1] = 10.0 ** rng.uniform(lo, hi, len(p))
         got, want = run(R["tables"], p), run(R["exact"], p)
-        rows.append(_row(f"R tables vs exact, outside table: {name}", p, got, want))
+        dom = f"outside the table: {name} (asymptotes), s, c as above"
+        rows.append(_row(f"R tables vs exact, outside table: {name}", p, got, want, dom))
+    from twoscale import psd
+    from twoscale.tables import DATA_DIR
+
+    meta = psd._table().meta
+    for row in rows:
+        if "tables" in row["quantity"]:
+            row["build_seconds"] = meta.get("build_seconds")
+            row["file_bytes"] = (DATA_DIR / "renormalisation.npz").stat().st_size
     return rows
 
 

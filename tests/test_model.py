@@ -47,7 +47,9 @@ CONFIGS = [
 
 def _cfg_id(cfg):
     spec = "spectral" if cfg.is_spectral else "rgb"
-    return f"{cfg.material}-{cfg.q_mode}-{cfg.shadowing}-{'app' if cfg.apparatus else 'noapp'}-{spec}"
+    return (
+        f"{cfg.material}-{cfg.q_mode}-{cfg.shadowing}-{'app' if cfg.apparatus else 'noapp'}-{spec}"
+    )
 
 
 # ------------------------------------------------------------------------------------ invariants
@@ -69,7 +71,9 @@ def test_nonnegative_reciprocal_isotropic(cfg):
     assert np.all(np.isfinite(v)) and np.all(v >= 0.0) and np.max(v) > 0.0
     np.testing.assert_allclose(np.asarray(f(wo, wi)), v, rtol=1e-10, atol=1e-300)
     a = 0.7
-    rot = jnp.asarray([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]])
+    rot = jnp.asarray(
+        [[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]]
+    )
     np.testing.assert_allclose(np.asarray(f(wi @ rot.T, wo @ rot.T)), v, rtol=1e-9)
 
 
@@ -193,34 +197,51 @@ def test_albedo_quadrature(material, beta, cos_i):
 
 
 def test_albedo_conservation_q_f_and_excess_q_2f(capsys):
-    """With Q = F the directional albedo stays ≤ 1 over a grid of parameters; with Q = 2F (the
-    reference) the diffraction lobe may add up to F(1 − A_s): the excess is computed and printed."""
-    grid = list(
-        itertools.product(
-            ("conductor", "plastic"), (0.01, 0.1, 0.5), (0.5, 1.0, 3.0), (0.02, 0.1), (0.1, 1.0, 10.0)
-        )
-    )
+    """Energy over a grid of parameters (near-perfect mirror conductor, bright plastic).
+
+    Conserving: ``Q = F`` with the η²-compressed plastic diffuse layer, for θ_i ≤ 45°
+    (cos θ_i ≥ 0.7): albedo ≤ 1. Not conserving, by the model's design, and reported here:
+    ``Q = 2F`` (reference); the reference plastic layer without ``1/η²`` (ρ_d = 0.95: ≈ 1.95);
+    and, with ``Q = F``, grazing incidence, because ``A_s`` is evaluated at θ_d of each pair
+    (reciprocal), so a wide diffraction lobe collects ``1 − A_s`` from directions nearer the
+    normal than the specular one (measured excess ≈ 0.14 at cos θ_i = 0.05).
+    """
+    grid = list(itertools.product((0.01, 0.1, 0.5), (0.5, 1.0, 3.0), (0.02, 0.1), (0.1, 1.0, 10.0)))
     cos_i = jnp.asarray([1.0, 0.7, 0.3, 0.05])
     worst = {}
-    for q_mode in ("F", "2F"):
+    for q_mode, eta2 in (("F", True), ("2F", True), ("F", False)):
         for material in ("conductor", "plastic"):
-            cfg = ModelConfig(material=material, q_mode=q_mode)
-            sets = [g for g in grid if g[0] == material]
+            cfg = ModelConfig(material=material, q_mode=q_mode, diffuse_eta2=eta2)
             if material == "conductor":  # near-perfect mirror: F ≈ 0.99, the worst case
-                mk = [TwoScaleParams.conductor(b_, p_, 0.05, 8.0, s_, bb, 1.5) for _, b_, p_, s_, bb in sets]
+                mk = [
+                    TwoScaleParams.conductor(b_, p_, 0.05, 8.0, s_, bb, 1.5)
+                    for b_, p_, s_, bb in grid
+                ]
             else:
                 mk = [
-                    TwoScaleParams.plastic(b_, p_, 1.5, 0.95, s_, bb, 1.5) for _, b_, p_, s_, bb in sets
+                    TwoScaleParams.plastic(b_, p_, 1.5, 0.95, s_, bb, 1.5)
+                    for b_, p_, s_, bb in grid
                 ]
             batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *mk)
-            a = np.asarray(jax.lax.map(lambda p, cfg=cfg: albedo(p, cos_i, cfg), batch, batch_size=9))
-            assert np.all(np.isfinite(a))
-            worst[q_mode, material] = float(a.max())
-    excess = {k: v - 1.0 for k, v in worst.items()}
+            a = np.asarray(
+                jax.lax.map(lambda p, cfg=cfg: albedo(p, cos_i, cfg), batch, batch_size=9)
+            )
+            assert np.all(np.isfinite(a)) and np.all(a >= 0.0)
+            worst[q_mode, eta2, material] = a.max(axis=(0, 2))  # per cos θ_i
     with capsys.disabled():
-        print("\nmax directional albedo over the grid:", {f"{q}/{m}": round(v, 4) for (q, m), v in worst.items()})
-    assert worst["F", "conductor"] <= 1.0 + 2e-3 and worst["F", "plastic"] <= 1.0 + 2e-3
-    assert excess["2F", "conductor"] > excess["F", "conductor"]  # computed, not hidden
+        print("\nmax directional albedo over the grid at cos θ_i =", np.asarray(cos_i).tolist())
+        for (q, e2, m), v in worst.items():
+            print(f"  Q={q:2s} diffuse_eta2={e2!s:5s} {m:9s}: {np.round(v, 4).tolist()}")
+    near_normal = slice(0, 2)
+    for material in ("conductor", "plastic"):
+        assert np.all(worst["F", True, material][near_normal] <= 1.0 + 2e-3), material
+        # Q = 2F carries more than Q = F: the excess is computed, not hidden.
+        assert worst["2F", True, material].max() > worst["F", True, material].max()
+    # Grazing with Q = F: the documented excess, bounded (a regression would grow it).
+    assert 1.0 < worst["F", True, "conductor"][-1] < 1.2
+    # The reference plastic layer (no 1/η²) is far from conserving for a bright layer.
+    assert worst["F", False, "plastic"].max() > 1.5
+    assert worst["F", True, "plastic"].max() <= 1.0 + 2e-3
 
 
 # ------------------------------------------------------------------------------------ extremes
@@ -248,13 +269,21 @@ def _dirs(cases, dtype):
 
 def _extreme_batch(material):
     """Every corner of β ∈ {1e-3, 1}, p ∈ {0.2, 5}, c ∈ {1.01, 5}, σ_s ∈ {0, 1}, b ∈ {0.01, 100}."""
-    corners = list(itertools.product((1e-3, 1.0), (0.2, 5.0), (1.01, 5.0), (0.0, 1.0), (0.01, 100.0)))
+    corners = list(
+        itertools.product((1e-3, 1.0), (0.2, 5.0), (1.01, 5.0), (0.0, 1.0), (0.01, 100.0))
+    )
     sets = []
     for beta, p, c, s, b in corners:
         if material == "conductor":
-            sets.append(TwoScaleParams.conductor(beta, p, [0.01, 1.5, 6.0], [10.0, 0.0, 0.0], s, b, c, 5.0))
+            sets.append(
+                TwoScaleParams.conductor(beta, p, [0.01, 1.5, 6.0], [10.0, 0.0, 0.0], s, b, c, 5.0)
+            )
         else:
-            sets.append(getattr(TwoScaleParams, material)(beta, p, [1.0, 1.5, 4.0], [0.0, 0.5, 1.0], s, b, c, 0.0))
+            sets.append(
+                getattr(TwoScaleParams, material)(
+                    beta, p, [1.0, 1.5, 4.0], [0.0, 0.5, 1.0], s, b, c, 0.0
+                )
+            )
     return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
 
 
@@ -281,7 +310,9 @@ def test_extremes_values_and_gradients_finite(cfg, dtype):
     assert np.all(np.isfinite(np.asarray(vals))) and np.all(np.asarray(vals) >= 0.0)
     grads = jax.jit(jax.vmap(jax.grad(total)))(batch)
     assert_finite_tree(grads, f"gradient ({jnp.dtype(dtype).name})")
-    gdir = jax.jit(jax.vmap(jax.grad(lambda a, p: jnp.sum(brdf(p, a, wo, cfg))), (None, 0)))(wi, batch)
+    gdir = jax.jit(jax.vmap(jax.grad(lambda a, p: jnp.sum(brdf(p, a, wo, cfg))), (None, 0)))(
+        wi, batch
+    )
     assert_finite_tree(gdir, "direction gradient")
 
 
@@ -312,7 +343,10 @@ def test_check_grads_every_parameter(cfg):
 def test_jit_equals_eager_and_vmap_equals_loop():
     cfg = ModelConfig(material="plastic", q_mode="full")
     wi, wo = _random_dirs(20, 5)
-    sets = [_params("plastic", beta=b_, sigma_s=s_) for b_, s_ in ((0.05, 0.01), (0.3, 0.05), (0.8, 0.0))]
+    sets = [
+        _params("plastic", beta=b_, sigma_s=s_)
+        for b_, s_ in ((0.05, 0.01), (0.3, 0.05), (0.8, 0.0))
+    ]
     with jax.disable_jit():
         eager = [np.asarray(brdf(p, wi, wo, cfg)) for p in sets]
     for p, e in zip(sets, eager, strict=True):
@@ -327,7 +361,11 @@ def test_float32_in_float32_out_and_broadcasting():
     wi, wo = _random_dirs(12, 6, np.float32)
     out = brdf(params, wi[:, None, :], wo[None, :4, :])
     assert out.dtype == jnp.float32 and out.shape == (12, 4, 3)
-    ref = brdf(_params("conductor"), wi[:, None, :].astype(jnp.float64), wo[None, :4, :].astype(jnp.float64))
+    ref = brdf(
+        _params("conductor"),
+        wi[:, None, :].astype(jnp.float64),
+        wo[None, :4, :].astype(jnp.float64),
+    )
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=2e-3)
 
 

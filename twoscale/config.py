@@ -43,6 +43,11 @@ class ModelConfig:
         shadowing: ``"correlated"`` (height-direction correlated Smith with van Ginneken's factor,
             φ wrapped into [0, π]; reference) or ``"uncorrelated"`` (``G1(i) G1(o)``).
         apparatus: multiply the specular lobe by MERL's ``L(θ_i) L(θ_o)`` (§3.11); adds ``e``.
+        diffuse_eta2: divide the plastic diffuse layer by ``η̄²`` (radiance compression at the
+            varnish, as in Weidlich-Wilkie style layered models). Off (default) is the reference's
+            §3.9 form, which has no ``1/η²`` and whose albedo exceeds 1 for bright layers
+            (ρ_d = 0.95, η = 1.5: ≈ 1.95); on, the diffuse albedo is at most ``1 − F(θ_i)``.
+            Only the plastic diffuse term changes (subsurface keeps §3.9).
         path: ``"tables"`` (precomputed C² spline tables; fast) or ``"exact"`` (quadrature).
         wavelengths: wavelengths in µm at which the model is evaluated; the default is the three
             RGB wavelengths (0.645, 0.526, 0.444), one per output channel.
@@ -59,6 +64,7 @@ class ModelConfig:
     q_mode: str = "2F"
     shadowing: str = "correlated"
     apparatus: bool = False
+    diffuse_eta2: bool = False
     path: str = "tables"
     wavelengths: tuple[float, ...] = field(default=RGB_WAVELENGTHS)
     spectral_output: str = "rgb"
@@ -70,7 +76,7 @@ class ModelConfig:
         _choice("shadowing", self.shadowing, SHADOWING)
         _choice("path", self.path, PATHS)
         _choice("spectral_output", self.spectral_output, SPECTRAL_OUTPUTS)
-        for name in ("specular", "diffraction", "diffuse", "apparatus"):
+        for name in ("specular", "diffraction", "diffuse", "apparatus", "diffuse_eta2"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ModelConfig.{name} = {getattr(self, name)!r}: expected a bool")
         if not isinstance(self.illuminant, str):

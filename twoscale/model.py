@@ -49,6 +49,16 @@ LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 # ------------------------------------------------------------------------------------ components
+def _safe_csqrt(z):
+    """Principal complex ``√z`` with a zero (not NaN) derivative at ``z = 0``.
+
+    ``z = ε − sin²θ`` is exactly 0 at grazing for an index-matched dielectric (``η = 1, k = 0``)
+    once float32 rounds ``sin²θ`` to 1; ``d√z/dz = 1/(2√z)`` would be inf there.
+    """
+    ok = jnp.abs(z) > 0.0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, z, 1.0)), 0.0)
+
+
 def polarisation_q(cos_i, cos_o, phi, eta, k):
     """Full polarisation factor ``Q = |Q_ss|² + |Q_sp|² + |Q_ps|² + |Q_pp|²`` [MODEL.md §3.7].
 
@@ -66,8 +76,8 @@ def polarisation_q(cos_i, cos_o, phi, eta, k):
     eps = (eta + 1j * k).astype(cdt) ** 2
     sin2_i = (1.0 - cos_i) * (1.0 + cos_i)
     sin2_o = (1.0 - cos_o) * (1.0 + cos_o)
-    w_i = jnp.sqrt(eps - sin2_i)
-    w_o = jnp.sqrt(eps - sin2_o)
+    w_i = _safe_csqrt(eps - sin2_i)
+    w_o = _safe_csqrt(eps - sin2_o)
     cos_s, sin_s = -jnp.cos(phi), jnp.sin(phi)
     a_s_i, a_s_o = cos_i + w_i, cos_o + w_o  # s-polarisation denominators
     a_p_i, a_p_o = eps * cos_i + w_i, eps * cos_o + w_o  # p-polarisation denominators
@@ -96,7 +106,7 @@ def apparatus_factor(cos_theta, e):
 def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     """Diffuse layer of a dielectric [MODEL.md §3.9]; per channel, shape ``(..., N)``.
 
-    plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))``;
+    plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))`` (``/η̄²`` with ``diffuse_eta2``);
     subsurface: ``ρ_d (1−F_i)(1−F_o) [1/(4π(cos θ'_i + cos θ'_o)) + (1 + e^{−(4/3)A√(3(1−ρ_d))})
     e^{−√(3(1−ρ_d))}/(2π)]``, ``cos θ' = √(1 − sin²θ/η²)``, ``A = (1+F_dr)/(1−F_dr)``,
     ``F_dr = F_dr(η̄)``.
@@ -105,12 +115,17 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     t_o = 1.0 - fresnel.dielectric(cos_o, eta)
     if cfg.material == "plastic":
         f_dr = fresnel.diffuse_fresnel(1.0 / eta_bar)
-        return rho_d * t_i * t_o / (math.pi * (1.0 - rho_d * f_dr))
+        # Optional radiance compression 1/η̄²: with it 1 − F_dr(1/η̄) ≈ (1 − F_dr(η̄))/η̄², so a
+        # white layer (ρ_d = 1) returns exactly the transmitted energy 1 − F(θ_i).
+        scale = 1.0 / (eta_bar * eta_bar) if cfg.diffuse_eta2 else 1.0
+        return scale * rho_d * t_i * t_o / (math.pi * (1.0 - rho_d * f_dr))
     f_dr = fresnel.diffuse_fresnel(eta_bar)
     a = (1.0 + f_dr) / (1.0 - f_dr)
     inv_eta2 = 1.0 / (eta * eta)
-    cos_ti = safe_sqrt(1.0 - (1.0 - cos_i * cos_i) * inv_eta2)  # refracted cosines (η ≥ 1)
-    cos_to = safe_sqrt(1.0 - (1.0 - cos_o * cos_o) * inv_eta2)
+    # Refracted cosines (η ≥ 1). Exactly, cos θ' ≥ cos θ; the max enforces it after rounding
+    # (η = 1 at grazing in float32 rounds 1 − sin²θ/η² to 0, and 1/(cos θ'_i + cos θ'_o) to inf).
+    cos_ti = jnp.maximum(safe_sqrt(1.0 - (1.0 - cos_i * cos_i) * inv_eta2), cos_i)
+    cos_to = jnp.maximum(safe_sqrt(1.0 - (1.0 - cos_o * cos_o) * inv_eta2), cos_o)
     single = 1.0 / (4.0 * math.pi * (cos_ti + cos_to))
     sq = safe_sqrt(3.0 * (1.0 - rho_d))  # gradient 0 (not inf) at ρ_d = 1
     multiple = (1.0 + jnp.exp(-4.0 / 3.0 * a * sq)) * jnp.exp(-sq) / (2.0 * math.pi)
@@ -182,7 +197,9 @@ def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig) -> dict:
     _check_structure(params, cfg)
     used = cfg.param_names
     dtype = float_dtype(wi, wo, *(getattr(params, n) for n in used))
-    par = {n: jnp.asarray(getattr(params, n), dtype) for n in used if n not in ("eta", "k", "rho_d")}
+    par = {
+        n: jnp.asarray(getattr(params, n), dtype) for n in used if n not in ("eta", "k", "rho_d")
+    }
     eta = params.channels("eta", cfg).astype(dtype)  # (N,)
     k = params.channels("k", cfg).astype(dtype) if cfg.is_conductor else None
     wl = jnp.asarray(cfg.wavelengths, dtype)
@@ -331,7 +348,9 @@ def albedo(
     # θ_h panels: geometric edges, the kink π/4 − θ_i/2 and the end π/4 + θ_i/2, sorted.
     th_max = 0.25 * math.pi + 0.5 * theta_i
     kink = 0.25 * math.pi - 0.5 * theta_i
-    geo = jnp.broadcast_to(jnp.asarray(_ALBEDO_EDGES, dtype), (*ct_i.shape[:-1], len(_ALBEDO_EDGES)))
+    geo = jnp.broadcast_to(
+        jnp.asarray(_ALBEDO_EDGES, dtype), (*ct_i.shape[:-1], len(_ALBEDO_EDGES))
+    )
     edges = jnp.concatenate([jnp.zeros_like(ct_i), geo, kink, th_max], axis=-1)
     edges = jnp.sort(jnp.minimum(edges, th_max), axis=-1)  # (..., E)
     x, w = (jnp.asarray(a, dtype) for a in gauss_legendre(n_theta))
@@ -352,9 +371,7 @@ def albedo(
     w_phi = phi_max[..., None] * wp
 
     st_h, ct_h = jnp.sin(theta_h)[..., None], jnp.cos(theta_h)[..., None]
-    h = jnp.stack(
-        jnp.broadcast_arrays(st_h * jnp.cos(phi_h), st_h * jnp.sin(phi_h), ct_h), axis=-1
-    )
+    h = jnp.stack(jnp.broadcast_arrays(st_h * jnp.cos(phi_h), st_h * jnp.sin(phi_h), ct_h), axis=-1)
     wi = jnp.stack(jnp.broadcast_arrays(st_i, jnp.zeros_like(st_i), ct_i), axis=-1)[..., None, :, :]
     i_dot_h = jnp.sum(wi * h, axis=-1)
     wo = 2.0 * i_dot_h[..., None] * h - wi

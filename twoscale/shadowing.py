@@ -362,7 +362,11 @@ def smith_lambda(tan_theta, beta, p, *, path: str = "tables"):
         p: EPD shape exponent.
         path: ``"tables"`` or ``"exact"``.
     """
-    return smith_lambda_a(jnp.asarray(beta) * jnp.asarray(tan_theta), p, path=path)
+    tan_theta, beta = jnp.asarray(tan_theta), jnp.asarray(beta)
+    # tan θ = inf (grazing) is clamped *before* the product: ∂a/∂β = tan θ = inf times the
+    # clamp's zero slope would be NaN. Beyond a_max(dtype) Λ's table/asymptote is clamped anyway.
+    t_max = a_max(_dtype(tan_theta, beta, p)) / 1e-3  # ≥ a_max/β for every β ≥ 1e-3
+    return smith_lambda_a(beta * jnp.minimum(tan_theta, t_max), p, path=path)
 
 
 def smith_g1(tan_theta, beta, p, *, path: str = "tables"):

@@ -1,0 +1,92 @@
+"""Parameter recovery of the two-scale model from synthetic MERL tables made by the model itself.
+
+Synthetic tables (``twoscale.fit.synthetic``) sample the model at the MERL bins' lower edges with
+the realistic mask (below-horizon cells plus random dropout: ≈ 24 % invalid). From the default
+starts, noise-free data must give back the parameters within 2 %, and 1 % multiplicative noise
+must give them back within a few reported standard errors, with the residual at the noise level.
+
+The default run fits one conductor and one plastic with the preview schedule (the full-data
+refinement stage is the same solver on more cells: ``tests/test_fit.py`` and ``test_cli.py`` run
+it); the ``slow`` cases cover more parameter sets with the default schedule.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twoscale import ModelConfig, TwoScaleParams
+from twoscale.fit import fit, synthetic
+
+CONDUCTOR = TwoScaleParams.conductor(
+    beta=0.12, p=1.4, eta=(0.25, 0.55, 1.35), k=(3.4, 2.4, 1.8), sigma_s=0.012, b=1.5, c=2.2
+)
+PLASTIC = TwoScaleParams.plastic(
+    beta=0.08, p=0.8, eta=(1.5, 1.5, 1.5), rho_d=(0.3, 0.15, 0.05), sigma_s=0.008, b=2.0, c=1.8
+)
+SLOW_SETS = [
+    (
+        "conductor",
+        TwoScaleParams.conductor(0.05, 2.5, (1.2, 0.9, 0.6), (6.0, 5.0, 4.0), 0.02, 0.8, 2.8),
+    ),
+    pytest.param(
+        "conductor",
+        TwoScaleParams.conductor(0.3, 0.7, (2.0, 1.8, 1.5), (3.0, 3.2, 3.5), 0.005, 4.0, 1.4),
+        marks=pytest.mark.xfail(
+            reason="measured: noise-free recovery passes, but with 1 % noise the fit lands in "
+            "another basin (σ_s 0.0228 vs 0.005 µm, 150 standard errors away): a narrow "
+            "diffraction lobe (b = 4 µm) under a rough specular lobe is nearly degenerate",
+            strict=False,
+        ),
+    ),
+    ("plastic", TwoScaleParams.plastic(0.2, 1.2, (1.4, 1.4, 1.4), (0.6, 0.5, 0.4), 0.01, 1.0, 2.5)),
+]
+
+
+def _relative_errors(est: TwoScaleParams, true: TwoScaleParams) -> dict:
+    out = {}
+    for name, value in true.fields().items():
+        t = np.atleast_1d(np.asarray(value, float))
+        e = np.atleast_1d(np.asarray(getattr(est, name), float))
+        out[name] = np.abs(e - t) / np.abs(t)
+    return out
+
+
+def _check_noise_free(material: str, true: TwoScaleParams, schedule: str) -> None:
+    data = synthetic(true, ModelConfig(material=material), noise=0.0, seed=3)
+    res = fit(data, material=material, schedule=schedule)
+    assert res.converged, res.status
+    rel = _relative_errors(res.params, true)
+    worst = {k: float(v.max()) for k, v in rel.items()}
+    assert all(v <= 0.02 for v in worst.values()), worst
+    assert res.rmse_log < 1e-4, res.rmse_log
+
+
+def _check_noisy(material: str, true: TwoScaleParams, schedule: str) -> None:
+    data = synthetic(true, ModelConfig(material=material), noise=0.01, seed=4)
+    res = fit(data, material=material, schedule=schedule)
+    assert res.converged, res.status
+    # 1 % multiplicative noise on ρ gives log residuals ≈ 0.01 ρ cos/(1 + ρ cos) < 0.01.
+    assert 1e-4 < res.rmse_log < 0.01, res.rmse_log
+    for name, value in true.fields().items():
+        est = np.asarray(getattr(res.params, name), float)
+        se = np.asarray(res.std_errors[name], float)
+        assert np.all(se > 0), (name, se)
+        assert np.all(np.abs(est - np.asarray(value)) <= 5.0 * se + 1e-12), (name, est, value, se)
+
+
+@pytest.mark.parametrize(("material", "true"), [("conductor", CONDUCTOR), ("plastic", PLASTIC)])
+def test_recovery_noise_free(material, true):
+    _check_noise_free(material, true, "preview")
+
+
+@pytest.mark.parametrize(("material", "true"), [("conductor", CONDUCTOR), ("plastic", PLASTIC)])
+def test_recovery_noisy_within_standard_errors(material, true):
+    _check_noisy(material, true, "preview")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("material", "true"), SLOW_SETS)
+def test_recovery_more_sets_default_schedule(material, true):
+    _check_noise_free(material, true, "default")
+    _check_noisy(material, true, "default")
