@@ -110,11 +110,17 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
         np.testing.assert_allclose(rr, r @ r, rtol=1e-10)
         np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-8, atol=1e-12 * np.abs(jtj).max())
         np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-8, atol=1e-12 * np.abs(jtr).max())
-        r_c, lin = jax.linearize(lambda yy, pb=problem, d=data, n=n_active: compressed_residuals(pb, yy, frozen, d, n), y)
+        r_c, lin = jax.linearize(
+            lambda yy, pb=problem, d=data, n=n_active: compressed_residuals(pb, yy, frozen, d, n), y
+        )
         j_c = jax.vmap(lin)(jnp.eye(4)).T
         np.testing.assert_allclose(r_c @ r_c, r @ r, rtol=1e-10)
-        np.testing.assert_allclose(j_c.T @ j_c, jac.T @ jac, rtol=1e-8, atol=1e-12 * np.abs(jtj).max())
-        np.testing.assert_allclose(j_c.T @ r_c, jac.T @ r, rtol=1e-7, atol=1e-12 * np.abs(jtr).max())
+        np.testing.assert_allclose(
+            j_c.T @ j_c, jac.T @ jac, rtol=1e-8, atol=1e-12 * np.abs(jtj).max()
+        )
+        np.testing.assert_allclose(
+            j_c.T @ r_c, jac.T @ r, rtol=1e-7, atol=1e-12 * np.abs(jtr).max()
+        )
 
 
 def test_reciprocal_pairs(ct_clean):
@@ -205,7 +211,9 @@ def test_result_record_roundtrip(ct_noisy, tmp_path):
     assert raw["covariance"]["rank"] == 7
     back = load_result(path)
     _leaves_close(back.params, res.params, rtol=1e-15)
-    assert back.rmse_log == res.rmse_log and back.std_errors == json.loads(json.dumps(res.std_errors))
+    assert back.rmse_log == res.rmse_log and back.std_errors == json.loads(
+        json.dumps(res.std_errors)
+    )
     assert CookTorranceParams.from_dict(raw["params"]).to_dict() == res.params.to_dict()
     assert not list(tmp_path.glob(".*tmp"))  # the atomic write left no temporary file
 
@@ -226,3 +234,20 @@ def test_needs_float64(ct_clean):
             fit(ct_clean, config=CT)
     finally:
         jax.config.update("jax_enable_x64", True)
+
+
+def test_nested_start_keeps_full_model_at_least_as_good():
+    """The full model contains the diffraction-off model (σ_s → 0): with the nested start its fit
+    is never worse than that model's own fit on the same cells and schedule."""
+    from twoscale import ModelConfig, TwoScaleParams
+
+    true = TwoScaleParams.conductor(0.1, 1.3, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0))
+    data = synthetic(true, ModelConfig(diffraction=False), noise=0.01, seed=5)
+    stages = [Stage(4096, 2, 25), Stage(8192, 1, 15)]
+    spec = fit(data, config=ModelConfig(diffraction=False), material="conductor", schedule=stages)
+    full = fit(data, material="conductor", schedule=stages)
+    labels = [e["start"] for e in full.stages[0]["starts"]]
+    assert sum("nested" in label for label in labels) == 1, labels
+    assert full.rmse_log <= spec.rmse_log * (1 + 1e-3), (full.rmse_log, spec.rmse_log)
+    no_nested = fit(data, material="conductor", schedule=stages[:1], nested=False)
+    assert not any("nested" in e["start"] for e in no_nested.stages[0]["starts"])

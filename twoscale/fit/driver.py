@@ -157,7 +157,9 @@ def _scales(jtj: np.ndarray) -> np.ndarray:
 
 
 @eqx.filter_jit
-def _solve(problem, y0, frozen, data, n_active, step_cap, n_resid, scale, rtol, atol, se_tol, solver_name):
+def _solve(
+    problem, y0, frozen, data, n_active, step_cap, n_resid, scale, rtol, atol, se_tol, solver_name
+):
     """Least-squares solve from ``y0`` on the active chunks of ``data``, at most ``step_cap`` steps.
 
     The solver works on ``z = (y − y0)/scale``. Returns ``(y, result, converged, steps, rᵀr, JᵀJ)``,
@@ -212,7 +214,6 @@ def _physical_free(problem, y, frozen, spec):
     return phys(y), jax.jacfwd(phys)(y)
 
 
-
 @dataclasses.dataclass
 class _Candidate:
     """One start travelling through the schedule."""
@@ -237,6 +238,35 @@ class _Group:
     layout: Layout
 
 
+#: A_spec(0) of the diffraction lobe added to the nested start (weak, but with a non-zero
+#: gradient in σ_s: at σ_s = 0 exactly, ∂A_s/∂σ_s = 0 and the solver could not leave it).
+NESTED_A_SPEC = 0.95
+
+
+def _nested_start(data, cfg, stages, fixed: dict, say, **kwargs) -> tuple[str, object]:
+    """A start from the fit of ``cfg`` with the diffraction lobe off (see ``fit(nested=...)``)."""
+    from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
+
+    spec_cfg = dataclasses.replace(cfg, diffraction=False)
+    sub_fixed = {k: v for k, v in fixed.items() if k not in ("sigma_s", "b", "c")}
+    sub_stages = stages[:-1] if len(stages) > 1 else stages  # the subsample stages only
+    res = fit(
+        data,
+        config=spec_cfg,
+        fixed=sub_fixed,
+        schedule=sub_stages,
+        nested=False,
+        progress=lambda msg: say(f"[{cfg.material}, diffraction off, for the nested start] {msg}"),
+        **kwargs,
+    )
+    b = float(fixed.get("b", START_B))
+    c = float(fixed.get("c", START_C[0]))
+    wl = float(np.median(np.asarray(cfg.wavelengths)))
+    sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(NESTED_A_SPEC, b, c, wl)))
+    params = res.params.replace(sigma_s=sigma_s, b=b, c=c).for_config(cfg)
+    return f"nested (diffraction-off fit, rms log {res.rmse_log:.4g})", params
+
+
 def _resolve_configs(config, material) -> list:
     """The model configurations to try (several for ``material='auto'``)."""
     if isinstance(config, CookTorranceConfig):
@@ -250,7 +280,9 @@ def _resolve_configs(config, material) -> list:
         if material is None:
             material = "auto"
     elif isinstance(config, str):
-        raise ValueError(f"config must be a ModelConfig, a CookTorranceConfig or 'auto', got {config!r}")
+        raise ValueError(
+            f"config must be a ModelConfig, a CookTorranceConfig or 'auto', got {config!r}"
+        )
     else:
         base = config
     if material is None:
@@ -412,6 +444,7 @@ def fit(
     rtol: float = RTOL,
     atol: float = ATOL,
     se_tol: float = SE_TOL,
+    nested: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Fit a BRDF model to a measured MERL table.
@@ -433,6 +466,11 @@ def fit(
         seed: seed of the subsampling.
         rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).
         se_tol: also stop when the Gauss-Newton step is below this many standard errors.
+        nested: with the default starts and the diffraction lobe on, first fit the same model
+            with the diffraction lobe off (fewer parameters, cheap; subsample stages only) and
+            add its solution, with a weak diffraction lobe (``A_spec(0) = 0.95``), as one more
+            start. The full model contains that model as the limit σ_s → 0, so this keeps the
+            full fit from ending worse than its own special case.
         progress: called with one line of text per start and stage (e.g. ``print``).
 
     Returns:
@@ -477,6 +515,9 @@ def fit(
             if isinstance(starts, str)
             else [(f"start {i}", s) for i, s in enumerate(starts)]
         )
+        if isinstance(starts, str) and nested and getattr(cfg, "diffraction", False):
+            sub = dict(metric=metric, max_theta_deg=max_theta_deg, solver=solver, seed=seed)
+            start_list.append(_nested_start(data, cfg, stages, fixed, say, **sub))
         group = None
         for label, p0 in start_list:
             p0, spec = _apply_fixed(p0, fixed, adapter)
