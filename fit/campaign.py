@@ -154,7 +154,11 @@ def write_report(path, rows: list[Row], settings: dict) -> Path:
     ]
     for r in rows:
         if r.error:
-            lines.append(f"| {r.name} | {r.source} | — | " + " | ".join("—" for _ in MODELS) + f" | failed: {r.error} |")
+            lines.append(
+                f"| {r.name} | {r.source} | — | "
+                + " | ".join("—" for _ in MODELS)
+                + f" | failed: {r.error} |"
+            )
             continue
         best = min(r.rmse_log.get(k, math.inf) for k in MODELS)
         cells = []
@@ -167,7 +171,9 @@ def write_report(path, rows: list[Row], settings: dict) -> Path:
                 s += "†"
             cells.append(s)
         total = sum(r.seconds.values())
-        lines.append(f"| {r.name} | {r.source} | {r.material} | " + " | ".join(cells) + f" | {total:.0f} |")
+        lines.append(
+            f"| {r.name} | {r.source} | {r.material} | " + " | ".join(cells) + f" | {total:.0f} |"
+        )
     lines += [
         "",
         "† the solver stopped at its step limit (result kept).",
@@ -179,7 +185,9 @@ def write_report(path, rows: list[Row], settings: dict) -> Path:
     ]
     for r in rows:
         if not r.error:
-            lines.append(f"| {r.name} | " + " | ".join(_fmt(r.rmse_lin.get(k)) for k in MODELS) + " |")
+            lines.append(
+                f"| {r.name} | " + " | ".join(_fmt(r.rmse_lin.get(k)) for k in MODELS) + " |"
+            )
     lines += ["", "## Summary", ""] + summary_sentences(rows)
     v = package_versions()
     lines += [
@@ -232,14 +240,20 @@ def main(argv=None) -> int:
         for i, (name, source, path) in enumerate(items):
             log(f"[{i + 1}/{len(items)}] {name} ({source})")
             try:
-                row = fit_material(path, metric=args.metric, schedule=schedule, log=log, records=records)
+                row = fit_material(
+                    path, metric=args.metric, schedule=schedule, log=log, records=records
+                )
             except Exception as err:  # noqa: BLE001 - one failed material must not stop the campaign
                 row = Row(name=name, source=source, error=f"{type(err).__name__}: {err}")
                 log(f"  failed: {row.error}")
             row.source = source
             rows.append(row)
             # Rewrite the report after every material: a long campaign can be watched and resumed.
-            write_report(args.out, rows, {"schedule": schedule, "metric": args.metric, "wall": time.perf_counter() - t0})
+            write_report(
+                args.out,
+                rows,
+                {"schedule": schedule, "metric": args.metric, "wall": time.perf_counter() - t0},
+            )
     log(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
     return 0
 

@@ -69,7 +69,9 @@ def mlp_brdf(weights: dict[str, np.ndarray], theta_h, theta_d, phi_d) -> np.ndar
     The result is 0 below the horizon (``cos θ_i`` or ``cos θ_o`` ≤ 0) and clipped at 0 (the
     network's ``exp(·) − 1`` can dip slightly below 0 where the BRDF is tiny).
     """
-    th, td, pd = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (theta_h, theta_d, phi_d)))
+    th, td, pd = np.broadcast_arrays(
+        *(np.asarray(a, dtype=np.float64) for a in (theta_h, theta_d, phi_d))
+    )
     x = np.stack(
         [
             np.sin(th),

@@ -32,7 +32,9 @@ N_X = 201  # nodes inside ξ ∈ [XI_LO, XI_HI]; one more each side
 PAD_P = 3  # the p axis is the accuracy-limiting one: its edges get more room
 
 
-def _padded_axis(name: str, lo: float, hi: float, n_inside: int, coordinate: str, pad: int = 1) -> Axis:
+def _padded_axis(
+    name: str, lo: float, hi: float, n_inside: int, coordinate: str, pad: int = 1
+) -> Axis:
     """Uniform axis with ``n_inside`` nodes on [lo, hi] plus ``pad`` nodes beyond each end."""
     step = (hi - lo) / (n_inside - 1)
     return Axis(name, lo - pad * step, hi + pad * step, n_inside + 2 * pad, coordinate)
@@ -43,7 +45,9 @@ def axes(n_p: int = N_P, n_x: int = N_X, pad_p: int = PAD_P) -> tuple[Axis, Axis
 
     return (
         _padded_axis("log_p", math.log(P_MIN), math.log(P_MAX), n_p, "log p", pad_p),
-        _padded_axis("xi", XI_LO, XI_HI, n_x, "η − (s(p) − 1) softplus(2(1/2 − η))/2, η = log(a E[R])"),
+        _padded_axis(
+            "xi", XI_LO, XI_HI, n_x, "η − (s(p) − 1) softplus(2(1/2 − η))/2, η = log(a E[R])"
+        ),
     )
 
 
@@ -73,7 +77,10 @@ def t_grid(ax: tuple[Axis, Axis]) -> np.ndarray:
     flat_a, flat_p = np.exp(log_a).ravel(), p.ravel()
     chunk = 4096  # bounded memory: chunk × QUAD_NODES per call
     lam = np.concatenate(
-        [np.asarray(lam_fn(flat_a[i : i + chunk], flat_p[i : i + chunk])) for i in range(0, flat_a.size, chunk)]
+        [
+            np.asarray(lam_fn(flat_a[i : i + chunk], flat_p[i : i + chunk]))
+            for i in range(0, flat_a.size, chunk)
+        ]
     ).reshape(p.shape)
     if not np.all((lam > 0) & np.isfinite(lam)):
         raise RuntimeError("Λ underflowed or is not finite on the Smith grid")

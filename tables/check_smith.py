@@ -138,7 +138,11 @@ def accuracy_rows(n_points: int = 2000, seed: int = 0, n_scipy: int = 60) -> lis
     for path, fn in (("exact", exact), ("tables", tables)):
         got = np.asarray(fn(a, np.ones_like(a)))
         rows.append(
-            _row(f"Λ {path} vs Beckmann closed form", "p=1, a∈[0.05,1e7]", np.abs(got / ref - 1.0)[keep])
+            _row(
+                f"Λ {path} vs Beckmann closed form",
+                "p=1, a∈[0.05,1e7]",
+                np.abs(got / ref - 1.0)[keep],
+            )
         )
 
     # Table vs exact over the whole domain and the grazing-to-normal range of the brief.
@@ -153,7 +157,13 @@ def accuracy_rows(n_points: int = 2000, seed: int = 0, n_scipy: int = 60) -> lis
     rows.append(_row("G1 tables vs exact", dom, g1_err, "all points", meta))
     band = (a >= 1e-3) & (a <= 1e7)
     rows.append(
-        _row("Λ tables vs exact", "a∈[1e-3,1e7], p∈[0.1,10]", lam_err[keep & band], "where Λ > 1e-12", meta)
+        _row(
+            "Λ tables vs exact",
+            "a∈[1e-3,1e7], p∈[0.1,10]",
+            lam_err[keep & band],
+            "where Λ > 1e-12",
+            meta,
+        )
     )
     return rows
 

@@ -21,7 +21,9 @@ from twoscale.baselines import (
 
 
 def _dir(theta, phi):
-    return np.array([math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)])
+    return np.array(
+        [math.sin(theta) * math.cos(phi), math.sin(theta) * math.sin(phi), math.cos(theta)]
+    )
 
 
 @pytest.mark.parametrize("dist", ["ggx", "beckmann"])
@@ -63,7 +65,11 @@ def test_smith_lambda_matches_integral(alpha, theta):
     s = alpha / math.sqrt(2)
 
     def integrand(q):
-        return (q * math.tan(theta) - 1) * math.exp(-q * q / (2 * s * s)) / (s * math.sqrt(2 * math.pi))
+        return (
+            (q * math.tan(theta) - 1)
+            * math.exp(-q * q / (2 * s * s))
+            / (s * math.sqrt(2 * math.pi))
+        )
 
     val, _ = integrate.quad(integrand, 1 / math.tan(theta), np.inf)
     assert val == pytest.approx(beck, rel=1e-7, abs=1e-14)
@@ -78,7 +84,9 @@ def test_reciprocal_and_zero_below_horizon(dist):
     ph = rng.uniform(0, 2 * np.pi, (2, 50))
     wi = np.stack([_dir(a, b) for a, b in zip(th[0], ph[0], strict=True)])
     wo = np.stack([_dir(a, b) for a, b in zip(th[1], ph[1], strict=True)])
-    np.testing.assert_allclose(cook_torrance(p, wi, wo, cfg), cook_torrance(p, wo, wi, cfg), rtol=1e-12)
+    np.testing.assert_allclose(
+        cook_torrance(p, wi, wo, cfg), cook_torrance(p, wo, wi, cfg), rtol=1e-12
+    )
     below = wo * np.array([1, 1, -1])
     assert np.all(np.asarray(cook_torrance(p, wi, below, cfg)) == 0.0)
 

@@ -81,7 +81,18 @@ def test_success_and_load_back(files, tmp_path, capsys):
     assert CookTorranceParams.from_dict(raw["params"]).to_dict() == res.params.to_dict()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
     # A second run into the existing folder replaces the files.
-    rc = main([str(files["good"]), "--out", str(out), "--baseline", "ggx", "--preview", "--no-plots", "--quiet"])
+    rc = main(
+        [
+            str(files["good"]),
+            "--out",
+            str(out),
+            "--baseline",
+            "ggx",
+            "--preview",
+            "--no-plots",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     assert (out / "params.json").is_file()
 
@@ -151,6 +162,16 @@ def test_non_convergence_leaves_nothing(files, tmp_path, capsys, monkeypatch):
     assert rc == EXIT_FIT
     _assert_one_line_error(capsys.readouterr().err, "did not converge")
     assert not out.exists() and list(tmp_path.iterdir()) == []
-    rc = main([str(files["good"]), "--out", str(out), "--baseline", "ggx", "--allow-unconverged", "--no-plots"])
+    rc = main(
+        [
+            str(files["good"]),
+            "--out",
+            str(out),
+            "--baseline",
+            "ggx",
+            "--allow-unconverged",
+            "--no-plots",
+        ]
+    )
     assert rc == 0
     assert load_result(out / "params.json").converged is False

@@ -302,3 +302,17 @@ def test_from_function():
     assert np.all(d3.values[d3.valid] == 1.0)
     with pytest.raises(ValueError, match="shape"):
         merl.from_function(lambda wi, wo: wi[..., 0])
+
+
+def test_written_file_gets_ordinary_permissions(tmp_path):
+    """The temporary file of the atomic write is 0o600; the written file must not stay so."""
+    import os
+
+    values = np.zeros((90, 90, 180, 3))
+    path = merl.write(tmp_path / "a.binary", values)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+    os.chmod(path, 0o640)
+    merl.write(path, values)  # replacing keeps the replaced file's permissions
+    assert path.stat().st_mode & 0o777 == 0o640

@@ -127,7 +127,9 @@ def test_tables_vs_exact_random():
     (where Λ > 1e-12) and in G1 (everywhere), including a ∈ [1e-3, 1e7]."""
     a, p = random_points(4000, seed=11)
     a = np.concatenate([a, 10.0 ** np.random.default_rng(3).uniform(-3.0, 7.0, 2000)])
-    p = np.concatenate([p, np.exp(np.random.default_rng(4).uniform(math.log(0.1), math.log(10), 2000))])
+    p = np.concatenate(
+        [p, np.exp(np.random.default_rng(4).uniform(math.log(0.1), math.log(10), 2000))]
+    )
     ex = np.asarray(LAM["exact"](a, p))
     tb = np.asarray(LAM["tables"](a, p))
     keep = ex > 1e-12
@@ -254,7 +256,9 @@ def test_gradients_at_extremes(path, beta, p, tan):
     # Joint G, both forms, in every argument (φ away from its folds).
     for corr in (True, False):
         jg = jax.grad(
-            lambda ti, to, ph, b, q, corr=corr: joint_g(ti, to, ph, b, q, correlated=corr, path=path),
+            lambda ti, to, ph, b, q, corr=corr: joint_g(
+                ti, to, ph, b, q, correlated=corr, path=path
+            ),
             argnums=(0, 1, 2, 3, 4),
         )(tan, 0.5 * tan + 0.2, 1.0, beta, p)
         assert_finite_tree(jg, "joint G gradient")
@@ -264,14 +268,14 @@ def test_gradients_at_ties_and_folds():
     """max/min at Λ_i = Λ_o, φ at 0 and π (folds of the wrap), a = 0 and a = ∞: finite."""
     for path in PATHS:
         for phi in (0.0, np.pi, 2 * np.pi, -1.0):
-            g = jax.grad(lambda t, ph, path=path: joint_g(t, t, ph, 0.5, 1.0, path=path), argnums=(0, 1))(
-                1.3, phi
-            )
+            g = jax.grad(
+                lambda t, ph, path=path: joint_g(t, t, ph, 0.5, 1.0, path=path), argnums=(0, 1)
+            )(1.3, phi)
             assert_finite_tree(g)
         for a in (0.0, np.inf, 1e300):
-            g = jax.grad(lambda a, p, path=path: 1 / (1 + smith_lambda_a(a, p, path=path)), argnums=(0, 1))(
-                a, 1.0
-            )
+            g = jax.grad(
+                lambda a, p, path=path: 1 / (1 + smith_lambda_a(a, p, path=path)), argnums=(0, 1)
+            )(a, 1.0)
             assert_finite_tree(g)
             jg = jax.grad(lambda t, path=path: joint_g(t, t, 0.0, 1.0, 1.0, path=path))(a)
             assert np.isfinite(float(jg))

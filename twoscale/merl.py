@@ -27,14 +27,13 @@ starts with the path and says what is wrong. Bad arguments raise :class:`ValueEr
 from __future__ import annotations
 
 import errno
-import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from twoscale._atomic import write_atomic
 from twoscale.geometry import _dirs_from_half_diff
 
 __all__ = [
@@ -371,30 +370,7 @@ def write(path, values, valid=None) -> Path:
     body = np.ascontiguousarray(np.moveaxis(raw, -1, 0), dtype="<f8")
     header = np.asarray(SHAPE, dtype="<i4")
 
-    folder = path.parent
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header.tobytes())
-            f.write(memoryview(body).cast("B"))
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, _new_file_mode(path))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _new_file_mode(path: Path) -> int:
-    """Permissions for the written file: those of the file it replaces, else ``0o666 & ~umask``."""
-    try:
-        return path.stat().st_mode & 0o777
-    except FileNotFoundError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
+    return write_atomic(path, [header.tobytes(), memoryview(body).cast("B")])
 
 
 def from_function(

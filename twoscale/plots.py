@@ -28,6 +28,16 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path, title: str = "") -> Path:
+    """Title (if any), tight layout, write the PNG at 100 dpi and close the figure."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    _pyplot().close(fig)
+    return Path(path)
+
+
 def model_function(adapter, params, *, lobes: bool = False):
     """``f(wi, wo) -> ndarray (..., C)`` evaluating a fitted model (NumPy in and out).
 
@@ -141,12 +151,7 @@ def plot_slices(data, model, path, *, theta_d_deg=(0, 20, 45, 70), phi_d_deg: in
     if y_hi > 0:  # the measured range sets the scale (the model may soar at grazing angles)
         axes[0].set_ylim(y_lo / 3, y_hi * 3)
     axes[0].set_ylabel("ρ (1/sr)   dots: measured, lines: fit")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, title)
 
 
 def _plane_dirs(theta_i_deg, n=361):
@@ -188,7 +193,9 @@ def plot_lobes(model, path, *, data=None, lobe_model=None, theta_i_deg=(0, 30, 6
                 )
         if data is not None:
             meas, ok = merl_lookup(data, wi, wo)
-            ax.plot(t[ok], np.maximum(meas[ok, 1], 1e-6), ".", ms=3, color="tab:green", label="measured")
+            ax.plot(
+                t[ok], np.maximum(meas[ok, 1], 1e-6), ".", ms=3, color="tab:green", label="measured"
+            )
         ax.axvline(ti, color="grey", lw=0.5)
         ax.set_yscale("log")
         ax.set_xlabel("θ_o (deg), mirror direction at +θ_i")
@@ -196,12 +203,7 @@ def plot_lobes(model, path, *, data=None, lobe_model=None, theta_i_deg=(0, 30, 6
         ax.grid(True, which="both", alpha=0.2)
     axes[0].set_ylabel("ρ green (1/sr)")
     axes[0].legend(fontsize=7)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, title)
 
 
 def sphere_directions(size: int = 160, light_deg: float = 30.0):
@@ -211,7 +213,7 @@ def sphere_directions(size: int = 160, light_deg: float = 30.0):
     direction. Returns ``(wi, wo, mask)`` with ``wi, wo`` of shape ``(size, size, 3)`` in each
     pixel's tangent frame (normal = z) and ``mask`` the pixels on the sphere.
     """
-    y, x = np.mgrid[1:-1 : size * 1j, -1:1 : size * 1j]
+    y, x = np.mgrid[1 : -1 : size * 1j, -1 : 1 : size * 1j]
     r2 = x * x + y * y
     mask = r2 < 1.0
     n = np.stack([x, y, np.sqrt(np.clip(1.0 - r2, 0.0, 1.0))], axis=-1)
@@ -266,11 +268,7 @@ def plot_spheres(data, model, path, *, size: int = 160, light_deg: float = 30.0,
         ax.imshow(_tonemap(img, scale), interpolation="nearest")
         ax.set_title(name)
         ax.axis("off")
-    fig.suptitle(title or f"point light at {light_deg:g}° from the view direction")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, title or f"point light at {light_deg:g}° from the view direction")
 
 
 def write_fit_pictures(result, data, out_dir, *, adapter=None) -> list[Path]:
@@ -280,7 +278,9 @@ def write_fit_pictures(result, data, out_dir, *, adapter=None) -> list[Path]:
     out_dir = Path(out_dir)
     adapter = adapter or adapter_for(config_from_dict(result.config))
     model = model_function(adapter, result.params)
-    lobe_model = model_function(adapter, result.params, lobes=True) if adapter.name == "two-scale" else None
+    lobe_model = (
+        model_function(adapter, result.params, lobes=True) if adapter.name == "two-scale" else None
+    )
     kind = f" ({result.material})" if result.material != result.model else ""
     title = f"{getattr(data, 'name', '') or 'data'}: {result.model}{kind}, log RMSE {result.rmse_log:.3g}"
     return [
@@ -372,9 +372,4 @@ def plot_recovery(params, truth, path, *, std_errors=None, title=""):
     ax2.set_xlabel("pull (fit − true) / standard error")
     for ax in (ax1, ax2):
         ax.grid(True, axis="x", alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, title)

@@ -112,9 +112,7 @@ def _example_data():
     params = TwoScaleParams.conductor(
         e["beta"], e["p"], e["eta"], e["k"], sigma_s=e["sigma_s"], b=e["b"], c=e["c"]
     )
-    data = synthetic(
-        params, ModelConfig(material="conductor"), noise=0.01, seed=1, name="example"
-    )
+    data = synthetic(params, ModelConfig(material="conductor"), noise=0.01, seed=1, name="example")
     return data, params
 
 

@@ -11,11 +11,11 @@ import dataclasses
 import importlib.metadata
 import json
 import math
-import os
 import platform
-import tempfile
 from pathlib import Path
 from typing import Any
+
+from twoscale._atomic import write_text_atomic
 
 FORMAT = "twoscale-fit/1"
 
@@ -179,22 +179,6 @@ def _fmt(v) -> str:
     if isinstance(v, float | int):
         return f"{v:.4g}"
     return str(v)
-
-
-def write_text_atomic(path, text: str) -> Path:
-    """Write ``text`` to ``path`` so that readers see either the old file or the whole new one."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def result_from_dict(d: dict) -> FitResult:

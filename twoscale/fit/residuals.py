@@ -315,7 +315,9 @@ class Problem(eqx.Module):
         separable = set(getattr(self.adapter, "separable_fields", ()))
         rows, mask, owner = [], [], []
         start = 0
-        for name, shape, size in zip(self.layout.names, self.layout.shapes, self.layout.sizes, strict=True):
+        for name, shape, size in zip(
+            self.layout.names, self.layout.shapes, self.layout.sizes, strict=True
+        ):
             cols = range(start, start + size)
             if name in separable and shape == (n_ch,) and n_ch > 1:
                 seed = np.zeros(self.layout.size)
