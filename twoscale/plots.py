@@ -19,13 +19,17 @@ import numpy as np
 _CHANNEL_COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
-def _pyplot():
-    import matplotlib
+def _subplots(*args, **kwargs):
+    """A new figure and its axes, outside pyplot's state machine.
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
+    ``matplotlib.figure.Figure`` renders to PNG with the Agg canvas by itself: no backend is
+    selected (a notebook's inline backend keeps working) and no figure is left open.
+    """
+    from matplotlib.figure import Figure
 
-    return plt
+    figsize = kwargs.pop("figsize", None)
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kwargs)
 
 
 def _save(fig, path, title: str = "") -> Path:
@@ -34,7 +38,6 @@ def _save(fig, path, title: str = "") -> Path:
         fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    _pyplot().close(fig)
     return Path(path)
 
 
@@ -120,8 +123,7 @@ def plot_slices(data, model, path, *, theta_d_deg=(0, 20, 45, 70), phi_d_deg: in
     """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log scale."""
     from twoscale import merl
 
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, len(theta_d_deg), figsize=(4 * len(theta_d_deg), 3.6), sharey=True)
+    fig, axes = _subplots(1, len(theta_d_deg), figsize=(4 * len(theta_d_deg), 3.6), sharey=True)
     axes = np.atleast_1d(axes)
     ih = np.arange(merl.N_THETA_H)
     y_lo, y_hi = math.inf, 0.0
@@ -174,8 +176,7 @@ def plot_lobes(model, path, *, data=None, lobe_model=None, theta_i_deg=(0, 30, 6
         lobe_model: optional ``f(wi, wo) -> {lobe: (..., 3)}`` (two-scale model).
         data: optional MERL data, drawn as dots (nearest-bin lookup).
     """
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, len(theta_i_deg), figsize=(4 * len(theta_i_deg), 3.6), sharey=True)
+    fig, axes = _subplots(1, len(theta_i_deg), figsize=(4 * len(theta_i_deg), 3.6), sharey=True)
     axes = np.atleast_1d(axes)
     styles = {"specular": "--", "diffraction": ":", "diffuse": "-."}
     for ax, ti in zip(axes, theta_i_deg, strict=True):
@@ -258,12 +259,11 @@ def render_spheres(data, model, *, size: int = 160, light_deg: float = 30.0):
 
 def plot_spheres(data, model, path, *, size: int = 160, light_deg: float = 30.0, title=""):
     """Measured (MERL lookup) and fitted spheres side by side, same exposure (99.5th percentile)."""
-    plt = _pyplot()
     meas, fit, mask = render_spheres(data, model, size=size, light_deg=light_deg)
     ref = meas[mask].max(axis=-1)
     level = np.percentile(ref, 99.5) if ref.size else 1.0
     scale = 1.0 / level if level > 0 else 1.0
-    fig, axes = plt.subplots(1, 2, figsize=(7, 3.8))
+    fig, axes = _subplots(1, 2, figsize=(7, 3.8))
     for ax, img, name in zip(axes, (meas, fit), ("measured (MERL lookup)", "fit"), strict=True):
         ax.imshow(_tonemap(img, scale), interpolation="nearest")
         ax.set_title(name)
@@ -350,16 +350,13 @@ def plot_recovery(params, truth, path, *, std_errors=None, title=""):
     ``(fit − true)/se`` with the ±2 band. Rows from :func:`recovery_table`; entries without a true
     value ≠ 0 (left) or a standard error (right) are left out of that panel.
     """
-    plt = _pyplot()
     rows = recovery_table(params, truth, std_errors)
     names = [r["name"] for r in rows]
     y = np.arange(len(rows))[::-1]
     rel = np.array([100.0 * r["rel"] for r in rows])
     err = np.array([100.0 * r["se"] / abs(r["true"]) if r["true"] else math.nan for r in rows])
     pull = np.array([r["pull"] for r in rows])
-    fig, (ax1, ax2) = plt.subplots(
-        1, 2, figsize=(9, 0.3 * len(rows) + 1.6), sharey=True, squeeze=True
-    )
+    fig, (ax1, ax2) = _subplots(1, 2, figsize=(9, 0.3 * len(rows) + 1.6), sharey=True, squeeze=True)
     ok = np.isfinite(rel)
     ax1.errorbar(rel[ok], y[ok], xerr=np.where(np.isfinite(err[ok]), err[ok], 0.0), fmt="o", ms=4)
     ax1.axvline(0.0, color="grey", lw=0.8)
