@@ -38,7 +38,6 @@ def test_benchmark_scripts_run_on_tiny_sizes(tmp_path):
     text = (tmp_path / "variants.md").read_text()
     assert "specular only" in text and "Load average" in text
     # Trade pieces on a tiny grid: errors of the variants against the exact path.
-    rows = []
     body = run._errors(np.array([1.0, 2.0]), np.array([1.0, 2.5]))
     assert body == (0.2, 0.1)
     rows = [[0, 1.0, 0, 0, 0.1], [0, 2.0, 0, 0, 0.05], [0, 3.0, 0, 0, 0.2]]

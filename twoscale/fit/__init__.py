@@ -27,6 +27,7 @@ from twoscale.fit.driver import (
 from twoscale.fit.record import FitResult as FitResult
 from twoscale.fit.record import load_result as load_result
 from twoscale.fit.residuals import select_cells as select_cells
+from twoscale.fit.synthetic import EXAMPLE as EXAMPLE
 from twoscale.fit.synthetic import synthetic as synthetic
 
 

@@ -25,18 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
-EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
+from twoscale.fit.synthetic import EXAMPLE  # the --example material
 
-#: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo.
-EXAMPLE = dict(
-    beta=0.12,
-    p=1.4,
-    eta=(0.25, 0.55, 1.35),
-    k=(3.4, 2.4, 1.8),
-    sigma_s=0.012,
-    b=1.5,
-    c=2.2,
-)
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
 
 
 class InputError(Exception):

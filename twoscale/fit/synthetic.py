@@ -7,6 +7,17 @@ import numpy as np
 from twoscale.fit.adapters import adapter_for
 from twoscale.fit.residuals import Cells
 
+#: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo.
+EXAMPLE = dict(
+    beta=0.12,
+    p=1.4,
+    eta=(0.25, 0.55, 1.35),
+    k=(3.4, 2.4, 1.8),
+    sigma_s=0.012,
+    b=1.5,
+    c=2.2,
+)
+
 #: Fraction of above-horizon cells dropped at random by :func:`synthetic` (with the cells below
 #: the horizon this gives ≈ 24 % invalid cells, as in the MERL files: 75.8 % valid).
 DROPOUT = 0.005
