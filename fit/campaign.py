@@ -62,7 +62,15 @@ def _materials(folder, with_nbrdf: bool, tmp: Path, nbrdf_npz=None, log=print):
     return items
 
 
-def fit_material(path, *, metric: str, schedule: str, log=print, records: Path | None = None):
+def fit_material(
+    path,
+    *,
+    metric: str,
+    schedule: str,
+    log=print,
+    records: Path | None = None,
+    max_theta_deg: float | None = None,
+):
     """Fit the four models to one file; returns a :class:`Row`."""
     from twoscale import merl
     from twoscale.baselines import CookTorranceConfig
@@ -74,7 +82,7 @@ def fit_material(path, *, metric: str, schedule: str, log=print, records: Path |
 
     def run(key, **kw):
         t = time.perf_counter()
-        res = fit(data, metric=metric, schedule=schedule, **kw)
+        res = fit(data, metric=metric, schedule=schedule, max_theta_deg=max_theta_deg, **kw)
         row.seconds[key] = time.perf_counter() - t
         row.rmse_log[key] = res.rmse_log
         row.rmse_lin[key] = res.rmse_linear
@@ -194,7 +202,9 @@ def write_report(path, rows: list[Row], settings: dict) -> Path:
         "",
         "## Settings",
         "",
-        f"- schedule: {settings['schedule']}; metric: {settings['metric']}; materials: {len(rows)}",
+        f"- schedule: {settings['schedule']}; metric: {settings['metric']}; fitted cells: "
+        + (f"θ_i, θ_o ≤ {settings['max_theta']:g}°" if settings.get("max_theta") else "all valid")
+        + f"; materials: {len(rows)}",
         f"- machine: {platform.machine()}, {platform.system()}; Python {v['python']}, "
         f"jax {v['jax']}, optimistix {v['optimistix']}",
         f"- wall time: {settings['wall']:.0f} s",
@@ -212,6 +222,11 @@ def main(argv=None) -> int:
     ap.add_argument("--preview", action="store_true", help="preview schedule (faster)")
     ap.add_argument("--limit", type=int, help="fit only the first N materials")
     ap.add_argument("--metric", choices=("log", "linear"), default="log")
+    ap.add_argument(
+        "--max-theta",
+        type=float,
+        help="fit only cells with θ_i, θ_o ≤ this angle (degrees); RMSE still on all valid cells",
+    )
     ap.add_argument("--records", help="folder to keep every fit's params.json")
     args = ap.parse_args(argv)
 
@@ -241,7 +256,12 @@ def main(argv=None) -> int:
             log(f"[{i + 1}/{len(items)}] {name} ({source})")
             try:
                 row = fit_material(
-                    path, metric=args.metric, schedule=schedule, log=log, records=records
+                    path,
+                    metric=args.metric,
+                    schedule=schedule,
+                    log=log,
+                    records=records,
+                    max_theta_deg=args.max_theta,
                 )
             except Exception as err:  # noqa: BLE001 - one failed material must not stop the campaign
                 row = Row(name=name, source=source, error=f"{type(err).__name__}: {err}")
@@ -252,7 +272,12 @@ def main(argv=None) -> int:
             write_report(
                 args.out,
                 rows,
-                {"schedule": schedule, "metric": args.metric, "wall": time.perf_counter() - t0},
+                {
+                    "schedule": schedule,
+                    "metric": args.metric,
+                    "max_theta": args.max_theta,
+                    "wall": time.perf_counter() - t0,
+                },
             )
     log(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
     return 0
