@@ -228,6 +228,7 @@ class _Candidate:
     rr: float = math.nan  # rᵀr at y on the last stage's cells
     jtj: np.ndarray | None = None  # JᵀJ at y on the last stage's cells
     m: int = 0  # residuals in that stage
+    nested: bool = False  # the nested start: carried through every stage (see fit(nested=...))
 
 
 @dataclasses.dataclass
@@ -241,6 +242,7 @@ class _Group:
 #: A_spec(0) of the diffraction lobe added to the nested start (weak, but with a non-zero
 #: gradient in σ_s: at σ_s = 0 exactly, ∂A_s/∂σ_s = 0 and the solver could not leave it).
 NESTED_A_SPEC = 0.95
+NESTED_LABEL = "nested"
 
 
 def _nested_start(data, cfg, stages, fixed: dict, say, **kwargs) -> tuple[str, object]:
@@ -249,7 +251,8 @@ def _nested_start(data, cfg, stages, fixed: dict, say, **kwargs) -> tuple[str, o
 
     spec_cfg = dataclasses.replace(cfg, diffraction=False)
     sub_fixed = {k: v for k, v in fixed.items() if k not in ("sigma_s", "b", "c")}
-    sub_stages = stages[:-1] if len(stages) > 1 else stages  # the subsample stages only
+    # Every subsample stage (the extra steps of the later ones matter), not the full-data one.
+    sub_stages = tuple(st for st in stages if st.n_cells is not None) or stages
     res = fit(
         data,
         config=spec_cfg,
@@ -264,7 +267,7 @@ def _nested_start(data, cfg, stages, fixed: dict, say, **kwargs) -> tuple[str, o
     wl = float(np.median(np.asarray(cfg.wavelengths)))
     sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(NESTED_A_SPEC, b, c, wl)))
     params = res.params.replace(sigma_s=sigma_s, b=b, c=c).for_config(cfg)
-    return f"nested (diffraction-off fit, rms log {res.rmse_log:.4g})", params
+    return f"{NESTED_LABEL} (diffraction-off fit, rms log {res.rmse_log:.4g})", params
 
 
 def _resolve_configs(config, material) -> list:
@@ -467,10 +470,11 @@ def fit(
         rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).
         se_tol: also stop when the Gauss-Newton step is below this many standard errors.
         nested: with the default starts and the diffraction lobe on, first fit the same model
-            with the diffraction lobe off (fewer parameters, cheap; subsample stages only) and
+            with the diffraction lobe off (fewer parameters, cheap; the subsample stages) and
             add its solution, with a weak diffraction lobe (``A_spec(0) = 0.95``), as one more
-            start. The full model contains that model as the limit σ_s → 0, so this keeps the
-            full fit from ending worse than its own special case.
+            start, carried through every stage. The full model contains that model as the limit
+            σ_s → 0, so this keeps the full fit from ending worse than its own special case
+            (without it, a short schedule often did: ``fit/RESULTS.md``).
         progress: called with one line of text per start and stage (e.g. ``print``).
 
     Returns:
@@ -529,7 +533,12 @@ def fit(
             elif layout != group.layout:
                 raise ValueError("all starts must have the same parameter structure")
             cands.append(
-                _Candidate(f"{adapter.material} {label}", len(groups) - 1, layout.ravel(free))
+                _Candidate(
+                    f"{adapter.material} {label}",
+                    len(groups) - 1,
+                    layout.ravel(free),
+                    nested=label.startswith(NESTED_LABEL),
+                )
             )
     say(
         f"{n_fit} cells fitted of {len(selection.valid)} valid; {len(cands)} starts; "
@@ -606,6 +615,9 @@ def fit(
         for gi in range(len(groups)):
             mine = sorted((c for c in finite if c.group == gi), key=lambda c: c.cost)
             kept.extend(mine[: stage.keep])
+            # The nested start goes on to the end even when a subsample ranks it lower, so the
+            # last stage compares it with the others on the same cells.
+            kept.extend(c for c in mine[stage.keep :] if c.nested)
         # Material choice: before the last stage (or after it when there is only one).
         is_last = si == len(stages) - 1
         if len(groups) > 1 and (si == len(stages) - 2 or (is_last and len(stages) == 1)):
