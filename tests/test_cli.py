@@ -73,6 +73,11 @@ def test_success_and_load_back(files, tmp_path, capsys):
     ]
     for png in out.glob("*.png"):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Ordinary permissions (the temporary folder and files start 0o700 / 0o600).
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask
+    assert (out / "params.json").stat().st_mode & 0o777 == 0o666 & ~umask
     assert "RMSE" in captured.out and "stage 1/2" in captured.err
     res = load_result(out / "params.json")
     assert res.converged and res.model == "cook-torrance-ggx"

@@ -125,6 +125,12 @@ def _load(path: str):
     return data
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _write_outputs(out: Path, result, data, plots: bool, log) -> list[str]:
     """Write everything into a temporary sibling folder, then move it into place."""
     from twoscale.fit.record import write_text_atomic
@@ -132,6 +138,7 @@ def _write_outputs(out: Path, result, data, plots: bool, log) -> list[str]:
     out = out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0o700; the output is an ordinary folder
     try:
         if plots:
             from twoscale.plots import write_fit_pictures
