@@ -8,6 +8,13 @@ from collections.abc import Iterable
 from pathlib import Path
 
 
+def current_umask() -> int:
+    """The process umask (``os.umask`` can only be read by setting it: set, then restore)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def new_file_mode(path: Path) -> int:
     """Permissions for a written file: those of the file it replaces, else ``0o666 & ~umask``.
 
@@ -17,9 +24,7 @@ def new_file_mode(path: Path) -> int:
     try:
         return path.stat().st_mode & 0o777
     except FileNotFoundError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
+        return 0o666 & ~current_umask()
 
 
 def write_atomic(path, chunks: Iterable[bytes | memoryview]) -> Path:

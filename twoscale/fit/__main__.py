@@ -25,6 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from twoscale._atomic import current_umask
 from twoscale.fit.synthetic import EXAMPLE  # the --example material
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
@@ -125,12 +126,6 @@ def _load(path: str):
     return data
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _write_outputs(out: Path, result, data, plots: bool, log) -> list[str]:
     """Write everything into a temporary sibling folder, then move it into place."""
     from twoscale.fit.record import write_text_atomic
@@ -138,7 +133,9 @@ def _write_outputs(out: Path, result, data, plots: bool, log) -> list[str]:
     out = out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
-    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0o700; the output is an ordinary folder
+    os.chmod(
+        tmp, 0o777 & ~current_umask()
+    )  # mkdtemp makes it 0o700; the output is an ordinary folder
     try:
         if plots:
             from twoscale.plots import write_fit_pictures
