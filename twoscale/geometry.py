@@ -223,6 +223,15 @@ def _dirs_from_half_diff(xp, theta_h, theta_d, phi_d):
     return wi, wo
 
 
+def _azimuth_difference(xp, wi, wo, e2):
+    """``|φ_i − φ_o|`` in [0, π] as :func:`frame` computes it (0 where undefined), for ``xp``."""
+    ix, iy, ox, oy = wi[..., 0], wi[..., 1], wo[..., 0], wo[..., 1]
+    ok = (ix * ix + iy * iy > e2) & (ox * ox + oy * oy > e2)
+    cross = xp.where(ok, ix * oy - iy * ox, 0.0)
+    dot = xp.where(ok, ix * ox + iy * oy, 1.0)
+    return xp.where(ok, xp.arctan2(xp.abs(cross), dot), 0.0)
+
+
 def dirs_from_half_diff(theta_h, theta_d, phi_d):
     """Directions of the half/difference angles with ``φ_h = 0`` [MODEL.md §7].
 
