@@ -142,6 +142,36 @@ class TwoScaleAdapter:
 
         return brdf(params, wi, wo, self.config)
 
+    def bin_terms(self, params):
+        """Per-``(θ_h, θ_d)``-bin factors of the model on the MERL grid (lower bin edges, as the
+        fit's cells): :func:`twoscale.model.half_diff_terms`."""
+        from twoscale.model import half_diff_terms, merl_grid
+
+        return half_diff_terms(params, merl_grid("lower"), self.config)
+
+    def evaluate_cells(self, params, terms, cells):
+        """The model at MERL cells (``cells``: ``ih``, ``jd``, ``cos`` = (cos θ_i, cos θ_o),
+        ``phi``) from :meth:`bin_terms`: equal to :meth:`evaluate` at their directions."""
+        from twoscale.model import brdf_from_terms
+
+        cos = cells["cos"]
+        return brdf_from_terms(
+            params,
+            terms,
+            cells["ih"],
+            cells["jd"],
+            cos[..., 0],
+            cos[..., 1],
+            cells["phi"],
+            self.config,
+        )
+
+    def evaluate_grid(self, params, convention: str = "lower"):
+        """The model on the whole MERL grid, ``(90, 90, 180, C)`` (:func:`twoscale.model.brdf_merl`)."""
+        from twoscale.model import brdf_merl
+
+        return brdf_merl(params, self.config, convention)
+
     def evaluate_lobes(self, params, wi, wo):
         """The lobes stacked on the last axis: ``[specular, diffraction, diffuse]`` × C (0 if off)."""
         import jax.numpy as jnp

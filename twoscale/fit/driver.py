@@ -231,6 +231,30 @@ class _Candidate:
     nested: bool = False  # the nested start: carried through every stage (see fit(nested=...))
 
 
+#: Two solutions closer than this many standard errors are the same minimum (see :func:`fit`).
+DUPLICATE_SE = 0.5
+
+
+def _same_solution(a: _Candidate, b: _Candidate, tol: float = DUPLICATE_SE) -> bool:
+    """Are ``a`` and ``b`` (same group, same stage) within ``tol`` standard errors of each other?
+
+    The distance is measured with ``a``'s Gauss-Newton matrix and residual variance:
+    ``δᵀ JᵀJ δ / σ²`` with ``δ = y_a − y_b`` and ``σ² = rᵀr/(m − n)``, the squared length of
+    ``δ`` in standard errors along the best-determined and worst-determined directions alike.
+    """
+    if a.group != b.group or a.jtj is None or a.y.shape != b.y.shape:
+        return False
+    n = int(a.y.shape[0])
+    d = np.asarray(a.y) - np.asarray(b.y)
+    if n == 0 or not np.all(np.isfinite(d)):
+        return n == 0
+    sigma2 = a.rr / max(a.m - n, 1)
+    if not (math.isfinite(sigma2) and sigma2 > 0.0):
+        return False
+    dist2 = float(d @ np.asarray(a.jtj) @ d) / sigma2
+    return dist2 < tol * tol
+
+
 @dataclasses.dataclass
 class _Group:
     adapter: object
@@ -353,7 +377,15 @@ def _errors(pred: np.ndarray, cells) -> dict:
 
 
 def predict_cells(adapter, params, cells) -> np.ndarray:
-    """Model values ``(N, C)`` at the cells (one compiled pass per model configuration)."""
+    """Model values ``(N, C)`` at the cells (one compiled pass per model configuration).
+
+    Adapters with ``evaluate_grid`` (the two-scale model) evaluate the whole MERL grid by its
+    fast path (:func:`twoscale.model.brdf_grid`) and take the cells from it; the others go
+    through the fixed-shape direction buffer.
+    """
+    if hasattr(adapter, "evaluate_grid"):
+        grid = np.asarray(adapter.evaluate_grid(params, "lower"))
+        return grid.reshape(-1, grid.shape[-1])[np.asarray(cells.index)]
     return evaluate_at(adapter.evaluate, params, cells.wi, cells.wo, adapter.config.n_channels)
 
 
@@ -465,6 +497,9 @@ def fit(
         starts: ``"default"`` (grid of MODEL.md §8, placed from the data) or a list of parameter
             objects (needs a single material type).
         schedule: ``"default"``, ``"preview"`` (no full-data refinement) or a list of :class:`Stage`.
+            After each stage the best ``keep`` *distinct* solutions go on: a start that ended
+            within :data:`DUPLICATE_SE` standard errors of a better one is dropped (its stage
+            log entry says ``duplicate_of``), so no minimum is refined twice.
         solver: ``"lm"`` (optimistix Levenberg-Marquardt) or ``"dogleg"``.
         seed: seed of the subsampling.
         rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).
@@ -610,14 +645,29 @@ def fit(
         finite = [c for c in cands if math.isfinite(c.cost)]
         if not finite:
             raise FitError("no start gave a finite fit (non-finite model values or residuals)")
-        # Keep the best `keep` per configuration group.
+        # Keep the best `keep` distinct solutions per configuration group. A solution within
+        # DUPLICATE_SE standard errors of a better kept one is the same minimum reached from
+        # another start: it is dropped (and the next distinct one kept), so later stages never
+        # refine one minimum twice.
         kept = []
+        duplicates = {}
         for gi in range(len(groups)):
             mine = sorted((c for c in finite if c.group == gi), key=lambda c: c.cost)
-            kept.extend(mine[: stage.keep])
-            # The nested start goes on to the end even when a subsample ranks it lower, so the
-            # last stage compares it with the others on the same cells.
-            kept.extend(c for c in mine[stage.keep :] if c.nested)
+            chosen: list[_Candidate] = []
+            for c in mine:
+                twin = next((k for k in chosen if _same_solution(k, c)), None)
+                if twin is not None:
+                    duplicates[c.label] = twin.label
+                    continue
+                # The nested start goes on to the end even when a subsample ranks it lower, so
+                # the last stage compares it with the others on the same cells.
+                if sum(not k.nested for k in chosen) < stage.keep or c.nested:
+                    chosen.append(c)
+            kept.extend(chosen)
+        for e in entries:
+            if e["start"] in duplicates:
+                e["duplicate_of"] = duplicates[e["start"]]
+                say(f"stage {si + 1}: [{e['start']}] reached [{e['duplicate_of']}]: dropped")
         # Material choice: before the last stage (or after it when there is only one).
         is_last = si == len(stages) - 1
         if len(groups) > 1 and (si == len(stages) - 2 or (is_last and len(stages) == 1)):

@@ -1,0 +1,186 @@
+"""The MERL-grid fast path: brdf_grid / brdf_merl, the per-bin factorisation used by the fit,
+the forward-mode rule of the shadowing term, and the fit's duplicate-solution test."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import twoscale
+from twoscale import merl, model
+from twoscale.fit.adapters import adapter_for
+from twoscale.fit.driver import _Candidate, _same_solution, predict_cells
+from twoscale.fit.residuals import Layout, Problem, normal_equations, pack, pair_cells, select_cells
+from twoscale.fit.synthetic import synthetic
+from twoscale.geometry import _dirs_from_half_diff
+
+CONDUCTOR = twoscale.TwoScaleParams.conductor(
+    beta=0.1, p=1.5, eta=(0.2, 0.5, 1.4), k=(3.5, 2.5, 1.9), sigma_s=0.01, b=1.5, c=2.2
+)
+PLASTIC = twoscale.TwoScaleParams.plastic(
+    0.08, 0.8, 1.5, (0.2, 0.3, 0.4), sigma_s=0.02, b=0.8, c=1.8, e=0.4
+)
+SUBSURFACE = twoscale.TwoScaleParams.subsurface(
+    0.3, 2.5, 1.4, (0.5, 0.3, 0.1), sigma_s=0.005, b=3.0, c=3.0
+)
+CASES = [
+    (CONDUCTOR, twoscale.ModelConfig()),
+    (PLASTIC, twoscale.ModelConfig(material="plastic", q_mode="full", apparatus=True)),
+    (SUBSURFACE, twoscale.ModelConfig(material="subsurface", shadowing="uncorrelated")),
+    (CONDUCTOR, twoscale.ModelConfig(diffraction=False)),
+]
+
+
+def _grid_directions(convention):
+    ih, jd, kp = np.meshgrid(np.arange(90), np.arange(90), np.arange(180), indexing="ij")
+    return _dirs_from_half_diff(np, *merl.bin_to_angles(ih, jd, kp, convention))
+
+
+@pytest.mark.parametrize("convention", ["lower", "centre"])
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_brdf_merl_equals_brdf(case, convention):
+    """The grid path is the same model: equal to brdf at every MERL cell's directions."""
+    params, cfg = CASES[case]
+    grid = np.asarray(model.brdf_merl(params, cfg, convention))
+    assert grid.shape == (90, 90, 180, 3) and grid.dtype == np.float64
+    wi, wo = _grid_directions(convention)
+    ref = np.asarray(model.brdf(params, wi, wo, cfg))
+    np.testing.assert_array_equal(grid == 0, ref == 0)  # the same cells below the horizon
+    # Relative agreement to rounding; the largest differences (~1e-10) sit at grazing cells,
+    # where cos θ_o ~ 1e-6 is computed from different expressions (the φ_d mirror).
+    np.testing.assert_allclose(grid, ref, rtol=1e-9, atol=1e-14 * ref.max())
+
+
+def test_brdf_merl_is_reciprocal_and_finite():
+    vals = np.asarray(model.brdf_merl(CONDUCTOR))
+    assert np.all(np.isfinite(vals)) and vals.min() >= 0.0
+    # Lower edges: bin k and 180 − k hold the same direction pair with i and o swapped.
+    np.testing.assert_array_equal(vals[:, :, 1:90], vals[:, :, 179:90:-1])
+
+
+def _small_grid(convention="lower"):
+    """Every 17th θ_h, 13th θ_d, 11th φ_d bin of the MERL grid (all bins computed: no mirror)."""
+    ch, cd, sd, *_ = model._merl_grid_numpy(convention)
+    ih, jd, kp = np.arange(0, 90, 17), np.arange(0, 90, 13), np.arange(0, 180, 11)
+    wi, wo = _dirs_from_half_diff(np, *merl.bin_to_angles(*np.ix_(ih, jd, kp), convention))
+    from twoscale.geometry import _azimuth_difference
+
+    phi = _azimuth_difference(np, wi, wo, np.finfo(float).eps ** 2)
+    g = model.HalfDiffGrid(
+        *(jnp.asarray(a) for a in (ch[ih], cd[jd], sd[jd], wi[..., 2], wo[..., 2], phi)),
+        jnp.arange(kp.size, dtype=jnp.int32),
+    )
+    return g, wi, wo
+
+
+@pytest.mark.parametrize("case", [0, 1])
+def test_brdf_grid_gradients_match_brdf(case):
+    """Parameter gradients of the grid path equal those of brdf at the same directions."""
+    params, cfg = CASES[case]
+    grid, wi, wo = _small_grid()
+    weights = jnp.asarray(np.random.default_rng(0).random(wi.shape[:-1] + (3,)))
+
+    def loss_grid(p):
+        return jnp.sum(weights * model.brdf_grid(p, grid, cfg))
+
+    def loss_ref(p):
+        return jnp.sum(weights * model.brdf(p, wi, wo, cfg))
+
+    for a, b in zip(
+        jax.tree_util.tree_leaves(jax.grad(loss_grid)(params)),
+        jax.tree_util.tree_leaves(jax.grad(loss_ref)(params)),
+        strict=True,
+    ):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
+    # Forward mode (the fit's) agrees with reverse mode through the custom JVP rule of G.
+    jf = jax.jacfwd(lambda p: model.brdf_grid(p, grid, cfg))(params)
+    jr = jax.jacrev(lambda p: model.brdf_grid(p, grid, cfg))(params)
+    for a, b in zip(jax.tree_util.tree_leaves(jf), jax.tree_util.tree_leaves(jr), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
+
+
+def test_shadowing_rule_matches_finite_differences():
+    """The custom forward rule of G: d/dβ, d/dp and d/d(directions) against central differences."""
+    cos_i = jnp.asarray([0.9, 0.5, 0.1, 1e-3])
+    cos_o = jnp.asarray([0.8, 0.2, 0.6, 0.05])
+    phi = jnp.asarray([0.3, 2.0, 3.1, 0.0])
+    static = ("tables", True)
+
+    def g(beta, p, ci):
+        return model._shadowing_g(static, beta, p, ci, cos_o, phi)
+
+    for k, (x0, h) in enumerate([(0.3, 1e-6), (1.7, 1e-6)]):
+        args = [0.3, 1.7, cos_i]
+        tangent = [0.0, 0.0, jnp.zeros(4)]
+        tangent[k] = 1.0
+        _, d = jax.jvp(
+            g, tuple(jnp.asarray(a) for a in args), tuple(jnp.asarray(t) for t in tangent)
+        )
+        up, dn = list(args), list(args)
+        up[k], dn[k] = x0 + h, x0 - h
+        fd = (g(*up) - g(*dn)) / (2 * h)
+        np.testing.assert_allclose(d, fd, rtol=1e-6, atol=1e-9)
+    _, d = jax.jvp(lambda c: g(0.3, 1.7, c), (cos_i,), (jnp.ones(4),))
+    h = 1e-7
+    fd = (g(0.3, 1.7, cos_i + h) - g(0.3, 1.7, cos_i - h)) / (2 * h)
+    np.testing.assert_allclose(d, fd, rtol=1e-5, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def conductor_data():
+    return synthetic(CONDUCTOR, twoscale.ModelConfig(), noise=0.01, seed=3)
+
+
+def test_factorised_normal_equations_match_jacfwd(conductor_data):
+    """The fit's per-bin factorisation (terms once per pass, gathered per pair) gives the
+    normal equations of jacfwd through the plain model at the cells' directions."""
+    sel = select_cells(conductor_data)
+    cells = sel.fit.take(np.random.default_rng(1).choice(len(sel.fit), 1500, replace=False))
+    adapter = adapter_for(twoscale.ModelConfig())
+    p0 = CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6)
+    spec = jax.tree_util.tree_map(lambda _: True, p0)
+    free, frozen = eqx.partition(p0.to_unconstrained(), spec)
+    layout = Layout.of(free)
+    y = layout.ravel(free)
+    problem = Problem(adapter, layout, "log")
+    assert problem.factorised
+    data, n_active = pack(pair_cells(cells), n_chunks=3, chunk=512)
+
+    def full(yy):
+        pred = model.brdf(problem.params(yy, frozen), cells.wi, cells.wo)
+        cos = cells.cos_i[:, None]
+        return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
+
+    r = full(y)
+    jac = jax.jacfwd(full)(y)
+    jtj, jtr, rr = normal_equations(problem, y, frozen, data, jnp.int32(n_active))
+    np.testing.assert_allclose(rr, r @ r, rtol=1e-9)
+    np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-7, atol=1e-11 * np.abs(jtj).max())
+    np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-7, atol=1e-11 * np.abs(jtr).max())
+
+
+def test_predict_cells_grid_path(conductor_data):
+    sel = select_cells(conductor_data)
+    cells = sel.valid.take(np.arange(0, len(sel.valid), 997))
+    adapter = adapter_for(twoscale.ModelConfig())
+    ref = np.asarray(model.brdf(CONDUCTOR, cells.wi, cells.wo))
+    np.testing.assert_allclose(predict_cells(adapter, CONDUCTOR, cells), ref, rtol=1e-9)
+
+
+def test_same_solution():
+    jtj = np.diag([100.0, 1.0])
+
+    def cand(y):
+        return _Candidate("c", 0, jnp.asarray(y), rr=10.0, jtj=jtj, m=12)
+
+    # σ² = rr/(m − n) = 1: distance² = δᵀ JᵀJ δ.
+    a = cand([0.0, 0.0])
+    assert _same_solution(a, cand([0.04, 0.0]))  # 0.4 SE
+    assert not _same_solution(a, cand([0.06, 0.0]))  # 0.6 SE
+    assert _same_solution(a, cand([0.0, 0.4]))
+    assert not _same_solution(a, cand([0.0, 0.6]))
+    assert not _same_solution(a, _Candidate("d", 1, jnp.zeros(2), rr=10.0, jtj=jtj, m=12))
+    assert not _same_solution(a, cand([np.nan, 0.0]))
