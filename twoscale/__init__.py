@@ -8,6 +8,7 @@ The public surface (everything else lives in the submodules, which are public to
     rho = twoscale.brdf(params, wi, wo)                 # (..., 3), 1/sr, without cos θ_o
     parts = twoscale.lobes(params, wi, wo)              # {"specular", "diffraction", ...}
     a = twoscale.albedo(params, cos_theta_i)            # directional albedo
+    table = twoscale.brdf_merl(params)                  # (90, 90, 180, 3) on the MERL grid, fast
     result = twoscale.fit(twoscale.merl.read("gold-metallic-paint.binary"))  # needs float64
 
 Components: :mod:`twoscale.fresnel`, :mod:`twoscale.distribution` (EPD), :mod:`twoscale.shadowing`
@@ -46,6 +47,7 @@ from twoscale import (
 from twoscale import (
     merl as merl,
 )
+from twoscale import model as model
 from twoscale import (
     psd as psd,
 )
@@ -64,6 +66,8 @@ from twoscale.fit import load_result as load_result
 from twoscale.merl import MerlData as MerlData
 from twoscale.model import albedo as albedo
 from twoscale.model import brdf as brdf
+from twoscale.model import brdf_grid as brdf_grid
+from twoscale.model import brdf_merl as brdf_merl
 from twoscale.model import lobes as lobes
 from twoscale.params import TwoScaleParams as TwoScaleParams
 
