@@ -334,7 +334,10 @@ class LobeSlice(eqx.Module):
         t = normalised_angle(cos_theta_h, u, self.beta, self.q, self.log_map(au))
         ct = jnp.clip(cos_theta_h, 0.0, 1.0)
         base = ct * ct + jnp.exp(self.log_k) * (1.0 - ct) * (1.0 + ct)
-        return jnp.exp(jnp.log(base) + self.g(au, t))
+        # On a grid (u per θ_d bin and channel, shared by every θ_h) contract along u once per u.
+        shared = 4 * au.size <= t.size and self.g.coeffs.ndim == 2
+        g = self.g.call_shared_first(au, t) if shared else self.g(au, t)
+        return jnp.exp(jnp.log(base) + g)
 
 
 def lobe_spline(beta, p, c, dtype=jnp.float64) -> LobeSlice:

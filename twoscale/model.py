@@ -483,27 +483,36 @@ def brdf_grid(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig = 
     return jnp.take(out, grid.unfold, axis=2)
 
 
-def half_diff_terms(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig) -> dict:
-    """The ``(θ_h, θ_d)`` factors of the lobes on a grid's bins, each ``(H, D, N)``.
+def half_diff_terms(
+    params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig, bins=None
+) -> dict:
+    """The ``(θ_h, θ_d)`` factors of the lobes on a grid's bins.
 
-    With :func:`brdf_from_terms` this splits :func:`brdf` on grid cells into a per-bin part
-    (computed once per parameter set) and a per-cell part; the fit uses it for MERL cells.
+    Each ``(H, D, N)`` (every bin), or ``(K, N)`` at the bins ``bins = (ih, jd)`` (two ``(K,)``
+    integer arrays) when only those are needed. With :func:`brdf_from_terms` this splits
+    :func:`brdf` on grid cells into a per-bin part (computed once per parameter set) and a
+    per-cell part; the fit uses it for MERL cells.
     """
     ch = _channels(params, config, grid.cos_h)
     cos_h, cos_d, sin_d = (jnp.asarray(a, ch.dtype) for a in (grid.cos_h, grid.cos_d, grid.sin_d))
+    if bins is not None:
+        ih, jd = bins
+        return _half_diff_terms(ch, cos_h[ih], cos_d[jd], sin_d[jd], config)
     return _half_diff_terms(ch, cos_h[:, None], cos_d[None, :], sin_d[None, :], config)
 
 
 def brdf_from_terms(
-    params: TwoScaleParams, terms: dict, ih, jd, cos_i, cos_o, phi, config: ModelConfig
+    params: TwoScaleParams, terms: dict, index, cos_i, cos_o, phi, config: ModelConfig
 ):
     """:func:`brdf` at cells of a grid, from the bins' :func:`half_diff_terms`, ``(..., C)``.
 
-    ``ih``, ``jd``: the cells' ``θ_h`` and ``θ_d`` bin indices; ``cos_i``, ``cos_o``, ``phi``:
-    their direction cosines and azimuth difference (cells at or below the horizon give 0).
+    ``index``: the cells' positions in ``terms`` (``(ih, jd)`` bin indices for the terms of
+    every bin, or one index array into ``(K, N)`` terms); ``cos_i``, ``cos_o``, ``phi``: their
+    direction cosines and azimuth difference (cells at or below the horizon give 0).
     """
     ch = _channels(params, config, cos_i)
-    hd = {k: v[ih, jd] for k, v in terms.items()}
+    index = index if isinstance(index, tuple) else (index,)
+    hd = {k: v[index] for k, v in terms.items()}
     return _cells_total(ch, hd, cos_i, cos_o, phi, config)
 
 

@@ -159,6 +159,29 @@ class Spline(eqx.Module):
         m = len(coords)
         return Spline(c, self.lo[m:], self.step[m:], self.n[m:], self.order)
 
+    def call_shared_first(self, x0, x1):
+        """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
+
+        ``x0`` broadcasts against ``x1`` but has far fewer elements (on a grid of half/difference
+        angles, ``asinh u`` depends on the ``θ_d`` bin and channel, ``t`` on every sample). The
+        spline is first contracted along axis 0 once per element of ``x0`` (a row of
+        coefficients along axis 1 each), then each sample does a 1-D lookup in its row: 4 terms
+        per sample (cubic) instead of 16. The same values as ``self(x0, x1)`` up to rounding.
+        """
+        if self.ndim != 2 or self.coeffs.ndim != 2:
+            raise ValueError("call_shared_first needs a 2-D spline without components")
+        c = self.coeffs
+        x0 = jnp.asarray(x0, c.dtype)
+        x1 = jnp.asarray(x1, c.dtype)
+        shape = jnp.broadcast_shapes(x0.shape, x1.shape)
+        i0, w0 = _weights(x0.reshape(-1), self.lo[0], self.step[0], self.n[0], self.order)
+        rows = sum(w0[:, k, None] * c[i0 + k] for k in range(self.width))  # (R, m)
+        row = jnp.broadcast_to(jnp.arange(x0.size, dtype=jnp.int32).reshape(x0.shape), shape)
+        i1, w1 = _weights(
+            jnp.broadcast_to(x1, shape), self.lo[1], self.step[1], self.n[1], self.order
+        )
+        return sum(w1[..., k] * rows[row, i1 + k] for k in range(self.width))
+
     def __call__(self, *coords):
         """Evaluate at broadcast coordinates (one array per axis); trailing components appended."""
         if len(coords) != self.ndim:

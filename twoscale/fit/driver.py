@@ -36,6 +36,7 @@ from twoscale.fit.residuals import (
     pair_cells,
     predict,
     select_cells,
+    stage_bins,
     sum_squares,
 )
 from twoscale.fit.starts import data_stats
@@ -588,6 +589,9 @@ def fit(
         # Whole chunks, the nearest number (all pairs for the full stage).
         n_active = -(-n_pairs // CHUNK) if stage.n_cells is None else max(1, round(n_pairs / CHUNK))
         n_cells = int(cells_upto[min(n_active * CHUNK, len(pairs)) - 1])
+        # A small stage evaluates the per-bin terms on the bins its pairs use only.
+        bins = stage_bins(pairs, min(n_active * CHUNK, len(pairs)))
+        data = buffer if bins is None else {**buffer, "bins": bins}
         entries = []
         for ci, cand in enumerate(cands):
             g = groups[cand.group]
@@ -596,17 +600,17 @@ def fit(
             n = g.layout.size
             if n == 0:
                 y, steps, msg, ok = cand.y, 0, "", True
-                rr = float(_sum_squares(problem, y, g.frozen, buffer, jnp.int32(n_active)))
+                rr = float(_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
                 jtj = np.zeros((0, 0))
             else:
                 m = n_cells * g.adapter.config.n_channels
 
-                def solve(y0, cap, scale, g=g, problem=problem, n_active=n_active, m=m):
+                def solve(y0, cap, scale, g=g, problem=problem, n_active=n_active, m=m, data=data):
                     return _solve(
                         problem,
                         y0,
                         g.frozen,
-                        buffer,
+                        data,
                         jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
                         jnp.int32(cap),  # dynamic too
                         jnp.int32(m),

@@ -210,7 +210,9 @@ def pair_cells(cells: Cells) -> Pairs:
 
 
 def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK):
-    """Pairs → device buffer ``{wi, wo, rho, cos, w, ih, jd, phi}``, ``(n_chunks, chunk, ...)``.
+    """Pairs → device buffer ``{wi, wo, rho, cos, w, hd, phi}``, ``(n_chunks, chunk, ...)``.
+
+    ``hd = 90 ih + jd``: the pair's ``(θ_h, θ_d)`` bin.
 
     Padding entries repeat the first pair (finite everywhere) with weight ``w = 0``.
     Returns ``(buffer, n_active)``: the number of leading chunks that hold pairs.
@@ -237,8 +239,7 @@ def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK):
         "rho": padded(pairs.rho),
         "cos": padded(pairs.cos),
         "w": padded(pairs.w, fill=0.0),
-        "ih": padded(pairs.ih),
-        "jd": padded(pairs.jd),
+        "hd": padded(pairs.ih * N_BINS_D + pairs.jd),
         "phi": padded(pairs.phi),
     }
     return {k: jnp.asarray(v) for k, v in buf.items()}, n_active
@@ -263,6 +264,46 @@ def pack_directions(wi, wo, n_chunks: int = DIRECTION_CHUNKS, chunk: int = CHUNK
 
 def _chunk_at(data, i):
     return jax.tree_util.tree_map(lambda a: jax.lax.dynamic_index_in_dim(a, i, 0, False), data)
+
+
+#: θ_d bins of the MERL grid (``hd = N_BINS_D · ih + jd``) and all (θ_h, θ_d) bins.
+N_BINS_D = 90
+N_BINS = 90 * 90
+#: Bin lists of a stage are padded to a multiple of this (one compiled size per multiple).
+BIN_BLOCK = 1024
+
+
+def stage_bins(pairs: Pairs, n_pairs: int):
+    """The (θ_h, θ_d) bins of the first ``n_pairs`` pairs, when they are few enough to pay.
+
+    A factorised pass computes the per-bin terms (and their tangents) on every bin used. On a
+    small subsample (the first stage: ≈ 2 000 pairs touch ≈ 1 800 of the 8 100 bins) that is
+    cheaper on the bins listed here than on all. Returns ``{"ih", "jd": (K,), "remap": (8100,)}``
+    (``K`` padded to a multiple of :data:`BIN_BLOCK` with bin 0; ``remap`` maps ``hd`` to the
+    position in the list, 0 for unlisted bins), or None when the list would not be at least 2×
+    smaller than the grid.
+    """
+    hd = np.unique(pairs.ih[:n_pairs].astype(np.int64) * N_BINS_D + pairs.jd[:n_pairs])
+    k = -(-max(hd.size, 1) // BIN_BLOCK) * BIN_BLOCK
+    if 2 * k > N_BINS:
+        return None
+    listed = np.zeros(k, np.int64)
+    listed[: hd.size] = hd
+    remap = np.zeros(N_BINS, np.int32)
+    remap[hd] = np.arange(hd.size, dtype=np.int32)
+    ih, jd = np.divmod(listed, N_BINS_D)
+    return {
+        "ih": jnp.asarray(ih, jnp.int32),
+        "jd": jnp.asarray(jd, jnp.int32),
+        "remap": jnp.asarray(remap),
+    }
+
+
+def _split(data):
+    """``(chunks, bins)``: the chunked buffer and the stage's bin list (None: every bin)."""
+    if "bins" in data:
+        return {k: v for k, v in data.items() if k != "bins"}, data["bins"]
+    return data, None
 
 
 def _fold_chunks(step, init, data, n_active):
@@ -382,13 +423,13 @@ class Problem(eqx.Module):
         """Does the adapter split its model into per-bin terms and a per-cell part?"""
         return hasattr(self.adapter, "bin_terms")
 
-    def terms(self, y, frozen):
+    def terms(self, y, frozen, bins=None):
         """The adapter's per-bin terms at ``y`` (computed once per pass), or None."""
         if not self.factorised:
             return None
-        return self.adapter.bin_terms(self.params(y, frozen))
+        return self.adapter.bin_terms(self.params(y, frozen), bins)
 
-    def chunk_residual(self, y, frozen, chunk, terms=None) -> jax.Array:
+    def chunk_residual(self, y, frozen, chunk, terms=None, bins=None) -> jax.Array:
         """Residuals of one chunk of pairs, flattened ``(chunk × 2 × C,)``; absent members give 0.
 
         ``terms``: :meth:`terms` at ``y`` for a factorised adapter (the model is then evaluated
@@ -398,7 +439,7 @@ class Problem(eqx.Module):
         if terms is None:
             pred = self.adapter.evaluate(params, chunk["wi"], chunk["wo"])
         else:
-            pred = self.adapter.evaluate_cells(params, terms, chunk)
+            pred = self.adapter.evaluate_cells(params, terms, chunk, bins)
         return metric_residual(pred[:, None, :], chunk, self.metric).reshape(-1)
 
 
@@ -415,28 +456,29 @@ def metric_residual(pred, chunk, metric: str):
 def sum_squares(problem: Problem, y, frozen, data, n_active) -> jax.Array:
     """``rᵀr`` over the active chunks (primal only)."""
 
-    terms = problem.terms(y, frozen)
+    data, bins = _split(data)
+    terms = problem.terms(y, frozen, bins)
 
     def step(acc, chunk):
-        r = problem.chunk_residual(y, frozen, chunk, terms)
+        r = problem.chunk_residual(y, frozen, chunk, terms, bins)
         return acc + jnp.sum(r * r)
 
     return _fold_chunks(step, jnp.zeros((), y.dtype), data, n_active)
 
 
-def linearised_terms(problem: Problem, y, frozen):
+def linearised_terms(problem: Problem, y, frozen, bins=None):
     """:meth:`Problem.terms` at ``y`` and their tangents along every seed, or ``(None, None)``."""
     if not problem.factorised:
         return None, None
     seeds = jnp.asarray(problem.seeds()[0], dtype=y.dtype)
 
     def terms(yy):
-        return problem.terms(yy, frozen)
+        return problem.terms(yy, frozen, bins)
 
     return jax.vmap(lambda t: jax.jvp(terms, (y,), (t,)), out_axes=(None, 0))(seeds)
 
 
-def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None):
+def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None, bins=None):
     """Residuals ``(m,)`` and transposed Jacobian ``(n, m)`` of one chunk (compressed seeds).
 
     ``terms``, ``terms_dot``: :func:`linearised_terms` (factorised adapters), computed once per
@@ -454,7 +496,7 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
     else:
 
         def f2(yy, tt):
-            return problem.chunk_residual(yy, frozen, chunk, tt)
+            return problem.chunk_residual(yy, frozen, chunk, tt, bins)
 
         r, jac_s = jax.vmap(lambda t, td: jax.jvp(f2, (y, terms), (t, td)), out_axes=(None, 0))(
             seeds, terms_dot
@@ -467,10 +509,11 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
 def normal_equations(problem: Problem, y, frozen, data, n_active):
     """``(JᵀJ, Jᵀr, rᵀr)`` over the active chunks, without keeping the Jacobian."""
     n = y.shape[0]
-    terms, terms_dot = linearised_terms(problem, y, frozen)
+    data, bins = _split(data)
+    terms, terms_dot = linearised_terms(problem, y, frozen, bins)
 
     def step(acc, chunk):
-        r, jac_t = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
+        r, jac_t = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot, bins)
         jtj, jtr, rr = acc
         return jtj + jac_t @ jac_t.T, jtr + jac_t @ r, rr + r @ r
 
