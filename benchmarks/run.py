@@ -113,6 +113,19 @@ def _eval_time(params, wi, wo, config, repeats: int, dtype=None):
     return t
 
 
+def _grid_time(params, config, repeats: int, dtype=None):
+    """One warm evaluation of the whole MERL grid by the grid path (``brdf_grid``)."""
+    import jax.numpy as jnp
+
+    import twoscale
+
+    dtype = dtype or jnp.float64
+    grid = twoscale.model.merl_grid("lower", dtype)
+    p = params.astype(dtype)
+    f = jax.jit(lambda pp, g: twoscale.brdf_grid(pp, g, config))
+    return common.timed(lambda: f(p, grid), repeats)
+
+
 def _target(name: str, value: float, lower_is_better: bool = True) -> str:
     goal = TARGETS[name]
     ok = value <= goal if lower_is_better else value >= goal
@@ -466,11 +479,12 @@ def trade(sizes: Sizes) -> str:
     exact = twoscale.ModelConfig(path="exact")
     t_ref = _eval_time(params, ri, ro, exact, max(1, sizes.repeats // 3))
     ref = np.asarray(t_ref["out"])
-    records = []  # [label, time, compile, max, median, note]
+    records = []  # [label, time, compile, max, median, note, grid time]
 
     def add(label, cfg, order=3, stride=1, dtype=None, note=""):
         with table_variant(order, stride):
             t = _eval_time(params, wi, wo, cfg, sizes.repeats, dtype)
+            tg = _grid_time(params, cfg, sizes.repeats, dtype)
             v = np.asarray(
                 twoscale.brdf(
                     params.astype(dtype or jnp.float64),
@@ -481,7 +495,7 @@ def trade(sizes: Sizes) -> str:
                 dtype=np.float64,
             )
         mx, md = _errors(v, ref)
-        records.append([label, t["median"] * scale, t["compile"], mx, md, note])
+        records.append([label, t["median"] * scale, t["compile"], mx, md, note, tg["median"]])
 
     add("tables, cubic B-spline, float64 (default)", base)
     records.append(
@@ -491,7 +505,10 @@ def trade(sizes: Sizes) -> str:
             t_ref["compile"],
             0.0,
             0.0,
-            f"timed on the {ri.shape[0]:,}-cell reference subsample, scaled to the full grid; it *is* the reference",
+            f"timed on the {ri.shape[0]:,}-cell reference subsample, scaled to the full grid; it *is* "
+            "the reference. Grid path not run: the exact Smith quadrature keeps 768 nodes per "
+            "direction, ≈ 9 GB per temporary array for the whole grid",
+            None,
         ]
     )
     add("tables, multilinear (order 1), float64", base, order=1)
@@ -503,6 +520,7 @@ def trade(sizes: Sizes) -> str:
         [
             ("**" + r[0] + "** ⟵ Pareto" if p else r[0]),
             fmt_time(r[1]),
+            "—" if r[6] is None else fmt_time(r[6]),
             fmt_time(r[2]),
             fmt(r[3]),
             fmt(r[4]),
@@ -514,10 +532,20 @@ def trade(sizes: Sizes) -> str:
         "## Accuracy against the exact path\n\n"
         f'Reference: `path="exact"`, float64, on a fixed random subsample of {ri.shape[0]:,} '
         "above-horizon MERL cells (seed 0). Errors: relative, over cells × channels where the "
-        "reference is > 0. Time: one full-grid evaluation (1,458,000 pairs × 3 channels). "
-        "Pareto front in (time, median error) marked.\n\n"
+        "reference is > 0. Time: one full-grid evaluation (1,458,000 pairs × 3 channels), by "
+        "`brdf` at the 1,458,000 direction pairs (any directions) and by the grid path "
+        "`brdf_grid` (the same values, to 1e-9 in float64: `tests/test_grid.py`; the errors are those of `brdf`). Pareto front in (`brdf` time, "
+        "median error) marked.\n\n"
         + table(
-            ["variant", "time / full grid", "compile", "max rel. err", "median rel. err", "note"],
+            [
+                "variant",
+                "time / full grid (`brdf`)",
+                "grid path (`brdf_grid`)",
+                "compile (`brdf`)",
+                "max rel. err",
+                "median rel. err",
+                "note",
+            ],
             rows,
         )
         + "\n"
@@ -536,17 +564,32 @@ def trade(sizes: Sizes) -> str:
         ("30 spectral samples → sRGB", cfgs[30]),
     ):
         t = _eval_time(params, wi, wo, cfg, sizes.repeats)
+        tg = _grid_time(params, cfg, sizes.repeats)
         v = np.asarray(twoscale.brdf(params, ri, ro, cfg))
         mx, md = _errors(v, ref30)
         spec_rows.append(
-            [label, fmt_time(t["median"] * scale), fmt_time(t["compile"]), fmt(mx), fmt(md)]
+            [
+                label,
+                fmt_time(t["median"] * scale),
+                fmt_time(tg["median"]),
+                fmt_time(t["compile"]),
+                fmt(mx),
+                fmt(md),
+            ]
         )
     text += (
         "\n## Wavelength sampling\n\nSame parameters (η, k given at the RGB wavelengths are "
         "upsampled, `spectral.upsample_rgb`); errors against the 30-sample spectral model "
         "(tables, float64), i.e. what RGB rendering changes, not an approximation error.\n\n"
         + table(
-            ["wavelengths", "time / full grid", "compile", "max rel. diff", "median rel. diff"],
+            [
+                "wavelengths",
+                "time / full grid (`brdf`)",
+                "grid path",
+                "compile (`brdf`)",
+                "max rel. diff",
+                "median rel. diff",
+            ],
             spec_rows,
         )
         + "\n"
@@ -664,18 +707,13 @@ def variants(sizes: Sizes) -> str:
         cfg = twoscale.ModelConfig(**kw)
         params = full.for_config(cfg) if hasattr(full, "for_config") else full
         t = _eval_time(params, wi, wo, cfg, sizes.repeats)
+        tg = _grid_time(params, cfg, sizes.repeats)
         a, b = jnp.asarray(wi[:8]), jnp.asarray(wo[:8])
-        eqns = len(
-            jax.make_jaxpr(lambda pp, x, y, cfg=cfg: twoscale.brdf(pp, x, y, cfg))(
-                params, a, b
-            ).jaxpr.eqns
-        )
         n_ops = _count_eqns(
             jax.make_jaxpr(lambda pp, x, y, cfg=cfg: twoscale.brdf(pp, x, y, cfg))(
                 params, a, b
             ).jaxpr
         )
-        del eqns
         fit_t = "—"
         if sizes.trade_fits:
             data = synthetic(params, cfg, noise=0.01, seed=2)
@@ -698,6 +736,7 @@ def variants(sizes: Sizes) -> str:
                 ", ".join(cfg.param_names),
                 n_ops,
                 fmt_time(t["median"] * scale),
+                fmt_time(tg["median"]),
                 fmt_time(t["compile"]),
                 fit_t,
             ]
@@ -708,7 +747,15 @@ def variants(sizes: Sizes) -> str:
         "at all (static configuration): the jaxpr op count and the time show what each lobe costs. "
         f"Fit: `{sizes.preview_schedule}` schedule on a synthetic material of that variant (warm; first run in brackets).\n\n"
         + table(
-            ["variant", "parameters", "jaxpr ops", "eval / full grid", "compile", "fit (preview)"],
+            [
+                "variant",
+                "parameters",
+                "jaxpr ops (`brdf`)",
+                "eval / full grid (`brdf`)",
+                "grid path (`brdf_grid`)",
+                "compile (`brdf`)",
+                "fit (preview)",
+            ],
             rows,
         )
         + "\n"
