@@ -47,11 +47,16 @@ def test_brdf_merl_equals_brdf(case, convention):
     grid = np.asarray(model.brdf_merl(params, cfg, convention))
     assert grid.shape == (90, 90, 180, 3) and grid.dtype == np.float64
     wi, wo = _grid_directions(convention)
-    ref = np.asarray(model.brdf(params, wi, wo, cfg))
-    np.testing.assert_array_equal(grid == 0, ref == 0)  # the same cells below the horizon
+    below = (wi[..., 2] <= 0) | (wo[..., 2] <= 0)
+    assert np.all(grid[below] == 0) and np.all(np.isfinite(grid))
+    # brdf at a random eighth of the cells (every cell costs 1 s per case; the mirror, the
+    # horizon and the grazing cells are all well represented in 180 000 cells).
+    pick = np.random.default_rng(case).random(grid.shape[:3]) < 0.125
+    ref = np.asarray(model.brdf(params, wi[pick], wo[pick], cfg))
+    np.testing.assert_array_equal(grid[pick] == 0, ref == 0)
     # Relative agreement to rounding; the largest differences (~1e-10) sit at grazing cells,
     # where cos θ_o ~ 1e-6 is computed from different expressions (the φ_d mirror).
-    np.testing.assert_allclose(grid, ref, rtol=1e-9, atol=1e-14 * ref.max())
+    np.testing.assert_allclose(grid[pick], ref, rtol=1e-9, atol=1e-14 * ref.max())
 
 
 def test_brdf_merl_is_reciprocal_and_finite():
