@@ -18,3 +18,15 @@ def shared_data():
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Drop JAX's compiled executables after each test module.
+
+    The suite compiles hundreds of functions (every configuration, shape and solver variant);
+    kept for the whole session they grew the process past 7 GB (measured), so each module
+    starts from empty caches instead (a few seconds of recompilation in all).
+    """
+    yield
+    jax.clear_caches()
