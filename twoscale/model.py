@@ -357,7 +357,22 @@ def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig) -> dict:
         return jnp.where(above, x, safe)
 
     hd = _half_diff_terms(ch, guard(fr.cos_h, 1.0), guard(fr.cos_d, 1.0), guard(fr.sin_d, 0.0), cfg)
-    out = _cell_lobes(ch, hd, guard(fr.cos_i, 1.0), guard(fr.cos_o, 1.0), guard(fr.phi, 0.0), cfg)
+    return _masked_cell_lobes(ch, hd, fr.cos_i, fr.cos_o, fr.phi, cfg)
+
+
+def _masked_cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) -> dict:
+    """:func:`_cell_lobes` with the horizon guard: cells with ``cos θ_i ≤ 0`` or ``cos θ_o ≤ 0``
+    are evaluated at a harmless stand-in (finite gradients), then set to exactly 0."""
+    cos_i, cos_o, phi = (jnp.asarray(a, ch.dtype) for a in (cos_i, cos_o, phi))
+    above = (cos_i > 0.0) & (cos_o > 0.0)
+    out = _cell_lobes(
+        ch,
+        hd,
+        jnp.where(above, cos_i, 1.0),
+        jnp.where(above, cos_o, 1.0),
+        jnp.where(above, phi, 0.0),
+        cfg,
+    )
     mask = above[..., None]
     return {name: jnp.where(mask, v, 0.0).astype(ch.dtype) for name, v in out.items()}
 
@@ -399,18 +414,7 @@ def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig()):
 
 def _cells_total(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig):
     """The BRDF (output channels) of cells from their half/difference factors; 0 below the horizon."""
-    cos_i, cos_o, phi = (jnp.asarray(a, ch.dtype) for a in (cos_i, cos_o, phi))
-    above = (cos_i > 0.0) & (cos_o > 0.0)
-    out = _cell_lobes(
-        ch,
-        hd,
-        jnp.where(above, cos_i, 1.0),
-        jnp.where(above, cos_o, 1.0),
-        jnp.where(above, phi, 0.0),
-        cfg,
-    )
-    total = jnp.where(above[..., None], sum(out.values()), 0.0).astype(ch.dtype)
-    return _to_output(total, cfg)
+    return _to_output(sum(_masked_cell_lobes(ch, hd, cos_i, cos_o, phi, cfg).values()), cfg)
 
 
 # ------------------------------------------------------------------------------------ grids
