@@ -10,7 +10,9 @@
   ``(erf μ − 1)/2 + e^{−μ²}/(2μ√π)``, ``μ = 1/(α tan θ)``.
 
 Seven parameters (α, F0 ×3, ρ_d ×3), the usual "microfacet + Lambert" model that a measured BRDF is
-compared against. The fitting driver (:mod:`twoscale.fit`) fits it with the same metric and
+compared against. With ``CookTorranceConfig(apparatus=True)`` the specular term is multiplied by
+MERL's apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)²]^e``, exactly as in the two-scale
+model (one more parameter, ``e``), so both are fitted to MERL data under the same protocol. The fitting driver (:mod:`twoscale.fit`) fits it with the same metric and
 schedule as the two-scale model: pass ``config=CookTorranceConfig("ggx")``.
 """
 
@@ -25,6 +27,7 @@ import jax.numpy as jnp
 from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
+from twoscale.model import apparatus_factor
 
 __all__ = [
     "CookTorranceConfig",
@@ -35,20 +38,30 @@ __all__ = [
 
 #: Roughness range kept by the reparametrisation (log-scaled sigmoid).
 ALPHA_RANGE = (1e-3, 2.0)
+#: Upper bound of the apparatus exponent (as for the two-scale model's ``e``).
+E_MAX = 5.0
 _DISTRIBUTIONS = ("ggx", "beckmann")
 
 
 @dataclasses.dataclass(frozen=True)
 class CookTorranceConfig:
-    """Static configuration of the baseline: the microfacet distribution, ``"ggx"`` or ``"beckmann"``."""
+    """Static configuration of the baseline.
+
+    Fields:
+        distribution: the microfacet distribution, ``"ggx"`` or ``"beckmann"``.
+        apparatus: multiply the specular term by MERL's ``L(θ_i) L(θ_o)`` (adds ``e``).
+    """
 
     distribution: str = "ggx"
+    apparatus: bool = False
 
     def __post_init__(self):
         if self.distribution not in _DISTRIBUTIONS:
             raise ValueError(
                 f"distribution must be one of {_DISTRIBUTIONS}, got {self.distribution!r}"
             )
+        if not isinstance(self.apparatus, bool):
+            raise ValueError(f"apparatus must be a bool, got {self.apparatus!r}")
 
     @property
     def name(self) -> str:
@@ -60,14 +73,16 @@ class CookTorranceConfig:
 
     @property
     def param_names(self) -> tuple[str, ...]:
-        return ("alpha", "f0", "rho_d")
+        return ("alpha", "f0", "rho_d", "e") if self.apparatus else ("alpha", "f0", "rho_d")
 
     def to_dict(self) -> dict:
-        return {"distribution": self.distribution}
+        return {"distribution": self.distribution, "apparatus": self.apparatus}
 
     @classmethod
     def from_dict(cls, d: dict) -> CookTorranceConfig:
-        return cls(distribution=d.get("distribution", "ggx"))
+        return cls(
+            distribution=d.get("distribution", "ggx"), apparatus=bool(d.get("apparatus", False))
+        )
 
 
 def _sigmoid(u):
@@ -86,19 +101,22 @@ class CookTorranceParams(eqx.Module):
     | ``alpha`` | α | — | [1e-3, 2] (shape ()) |
     | ``f0`` | F0 | — | (0, 1) per channel (3,) |
     | ``rho_d`` | ρ_d | — | (0, 1) per channel (3,) |
+    | ``e`` | e | — | [0, 5] (shape ()), apparatus exponent; None without the apparatus factor |
     """
 
     alpha: jax.Array
     f0: jax.Array
     rho_d: jax.Array
+    e: jax.Array | None = None
 
-    def __init__(self, alpha, f0, rho_d):
+    def __init__(self, alpha, f0, rho_d, e=None):
         self.alpha = jnp.asarray(alpha, dtype=jnp.result_type(float))
         self.f0 = jnp.broadcast_to(jnp.asarray(f0, dtype=jnp.result_type(float)), (3,))
         self.rho_d = jnp.broadcast_to(jnp.asarray(rho_d, dtype=jnp.result_type(float)), (3,))
+        self.e = None if e is None else jnp.asarray(e, dtype=jnp.result_type(float))
 
     def to_unconstrained(self) -> CookTorranceParams:
-        """Map to unconstrained values: α by a log-scaled logit, F0 and ρ_d by logit."""
+        """Map to unconstrained values: α by a log-scaled logit, F0, ρ_d and e/5 by logit."""
         lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
         t = (jnp.log(self.alpha) - lo) / (hi - lo)
         eps = 1e-12  # keep the logit finite for values on the boundary
@@ -106,6 +124,7 @@ class CookTorranceParams(eqx.Module):
             _logit(jnp.clip(t, eps, 1 - eps)),
             _logit(jnp.clip(self.f0, eps, 1 - eps)),
             _logit(jnp.clip(self.rho_d, eps, 1 - eps)),
+            None if self.e is None else _logit(jnp.clip(self.e / E_MAX, eps, 1 - eps)),
         )
 
     @staticmethod
@@ -113,18 +132,22 @@ class CookTorranceParams(eqx.Module):
         """Inverse of :meth:`to_unconstrained`; every real input maps inside the valid range."""
         lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
         alpha = jnp.exp(lo + (hi - lo) * _sigmoid(u.alpha))
-        return CookTorranceParams(alpha, _sigmoid(u.f0), _sigmoid(u.rho_d))
+        e = None if u.e is None else E_MAX * _sigmoid(u.e)
+        return CookTorranceParams(alpha, _sigmoid(u.f0), _sigmoid(u.rho_d), e)
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "alpha": float(self.alpha),
             "f0": [float(x) for x in self.f0],
             "rho_d": [float(x) for x in self.rho_d],
         }
+        if self.e is not None:
+            out["e"] = float(self.e)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> CookTorranceParams:
-        return cls(d["alpha"], d["f0"], d["rho_d"])
+        return cls(d["alpha"], d["f0"], d["rho_d"], d.get("e"))
 
 
 def _lambda_ggx(tan2, alpha):
@@ -181,6 +204,10 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
         lam_i, lam_o = _lambda_beckmann(tan2_i, alpha), _lambda_beckmann(tan2_o, alpha)
     g = 1.0 / (1.0 + lam_i + lam_o)
     spec = d * g / (4.0 * ci * co)
+    if config.apparatus:
+        if params.e is None:
+            raise ValueError("CookTorranceConfig(apparatus=True) needs the parameter e")
+        spec = spec * apparatus_factor(ci, params.e) * apparatus_factor(co, params.e)
     schlick = (1.0 - cos_d) ** 5
     f = params.f0 + (1.0 - params.f0) * schlick[..., None]
     rho = params.rho_d / jnp.pi + f * spec[..., None]

@@ -31,6 +31,8 @@ START_A_SPEC = (0.3, 0.7)
 #: Start value of the nano-scale correlation length b (µm): B = b/λ ≈ 2 in the green channel,
 #: a diffraction halo of half-width ≈ 15° in θ_h.
 START_B = 1.0
+#: Start value of MERL's apparatus exponent (fits of the stand-ins end near 0.5–1).
+START_E = 0.5
 #: Lobe names of the two-scale model, in the order of :meth:`TwoScaleAdapter.evaluate_lobes`.
 LOBES = ("specular", "diffraction", "diffuse")
 
@@ -84,7 +86,8 @@ class CookTorranceAdapter:
             alpha = float(np.clip(alpha0 * factor, 2e-3, 1.5))
             d0 = 1.0 / (math.pi * alpha * alpha)
             f0 = np.clip(4.0 * np.maximum(stats.peak - stats.floor, 0.0) / d0, 0.01, 0.98)
-            out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d)))
+            e = START_E if self.config.apparatus else None
+            out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d, e)))
         return out
 
 
@@ -225,7 +228,7 @@ class TwoScaleAdapter:
                 )
                 label += f" c={c:g} A_spec(0)={a_spec:g}"
             if cfg.apparatus:
-                extra["e"] = 0.5
+                extra["e"] = START_E
             if cfg.material == "conductor":
                 eta = np.full(3, 1.2)
                 k = conductor_k_for_f0(f0, 1.2)
