@@ -7,6 +7,9 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# The CLI's persistent compilation cache stays off in tests (never written into the user's cache
+# folder); the test of the cache switches it on for its own subprocesses.
+os.environ["TWOSCALE_COMPILE_CACHE"] = "0"
 
 SHARED = Path(os.environ.get("TWOSCALE_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 SHARED_DATA = SHARED / "data"

@@ -1,4 +1,5 @@
-"""``python -m twoscale.fit``: success path, bad inputs, non-convergence, loading the result back.
+"""``python -m twoscale.fit``: success path, bad inputs, exit codes, warnings, the MERL protocol,
+the compilation cache, loading the result back.
 
 Most cases call :func:`twoscale.fit.__main__.main` in-process (the compiled fit is shared between
 tests); the bad-input cases also run as real subprocesses to check the exit status and that no
@@ -39,8 +40,8 @@ def files(tmp_path_factory):
     return {"good": good, "short": short, "header": header, "empty": empty, "dir": d}
 
 
-def _run_cli(args, cwd):
-    env = dict(os.environ)
+def _run_cli(args, cwd, extra_env=None):
+    env = {**os.environ, **(extra_env or {})}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     env.pop("TWOSCALE_DEBUG", None)
     return subprocess.run(
@@ -151,32 +152,88 @@ def test_bad_options(files, tmp_path, capsys):
     assert taken.read_text() == "x"
 
 
-def test_non_convergence_leaves_nothing(files, tmp_path, capsys, monkeypatch):
-    """An unconverged fit exits with status 3 and writes nothing (unless --allow-unconverged)."""
+def test_capped_fit_exits_0_with_a_warning(files, tmp_path, capsys, monkeypatch):
+    """A fit stopped at the step limit is kept: exit 0, one warning line, recorded in params.json."""
     import twoscale.fit.driver as driver
 
     real_fit = driver.fit
 
-    def one_step_fit(data, **kw):
-        kw["schedule"] = [driver.Stage(4096, 1, 1)]  # one solver step: cannot converge
+    def capped_fit(data, **kw):
+        kw["schedule"] = [driver.Stage(4096, 1, max_steps=1)]  # one solver step: the cap ends it
         return real_fit(data, **kw)
 
-    monkeypatch.setattr(driver, "fit", one_step_fit)
+    monkeypatch.setattr(driver, "fit", capped_fit)
+    out = tmp_path / "out"
+    rc = main([str(files["good"]), "--out", str(out), "--baseline", "ggx", "--quiet", "--no-plots"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    warnings = [ln for ln in err.splitlines() if ln.startswith("warning: ")]
+    assert any("not converged: step limit reached" in ln for ln in warnings), err
+    res = load_result(out / "params.json")
+    assert res.converged is False
+    assert any("step limit" in w for w in res.warnings)
+
+
+def test_failed_fit_exits_3_and_leaves_nothing(files, tmp_path, capsys, monkeypatch):
+    """No start with a finite fit: exit 3, one error line, nothing written."""
+    import math
+
+    import twoscale.fit.driver as driver
+
+    def broken(cand, g, stage, data, n_active, m, opts):
+        return cand.y, math.nan, np.zeros((0, 0)), 1, False, "non-finite values"
+
+    monkeypatch.setattr(driver, "_refine", broken)
     out = tmp_path / "out"
     rc = main([str(files["good"]), "--out", str(out), "--baseline", "ggx", "--quiet"])
     assert rc == EXIT_FIT
-    _assert_one_line_error(capsys.readouterr().err, "did not converge")
+    _assert_one_line_error(capsys.readouterr().err, "no start gave a finite fit")
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_merl_protocol_and_bound_warning(files, tmp_path, capsys):
+    """The apparatus factor is on by default (also for the baselines), off with --no-apparatus.
+    The synthetic data have no grazing fall-off, so e ends at 0: a warning names it, exit 0."""
+    out = tmp_path / "on"
     rc = main(
-        [
-            str(files["good"]),
-            "--out",
-            str(out),
-            "--baseline",
-            "ggx",
-            "--allow-unconverged",
-            "--no-plots",
-        ]
+        [str(files["good"]), "--out", str(out), "--baseline", "ggx", "--preview", "--no-plots"]
     )
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    res = load_result(out / "params.json")
+    assert res.config["apparatus"] is True and res.std_errors["e"] is not None
+    assert any(w.startswith("e = ") and "lower end" in w for w in res.warnings)
+    assert any(ln.startswith("warning: e = ") for ln in err.splitlines()), err
+    out = tmp_path / "off"
+    args = [str(files["good"]), "--out", str(out), "--baseline", "ggx", "--preview", "--no-plots"]
+    rc = main([*args, "--no-apparatus", "--quiet"])
     assert rc == 0
-    assert load_result(out / "params.json").converged is False
+    res = load_result(out / "params.json")
+    assert res.config["apparatus"] is False and "e" not in res.std_errors
+    assert res.warnings == []
+
+
+def test_second_run_reuses_the_compilation_cache(files, tmp_path):
+    """Two CLI runs on two files: the first fills the persistent cache, the second adds nothing
+    to it (every compiled function is found there), and --no-compile-cache leaves it alone."""
+    cache = tmp_path / "cache"
+    other = tmp_path / "other.binary"
+    truth = CookTorranceParams(0.3, [0.5, 0.5, 0.5], [0.1, 0.1, 0.1])
+    merl.write(other, synthetic(truth, CookTorranceConfig("ggx"), noise=0.01, seed=4))
+    env = {"TWOSCALE_CACHE_DIR": str(cache), "TWOSCALE_COMPILE_CACHE": "1"}
+    args = ["--baseline", "ggx", "--preview", "--no-plots", "--quiet"]
+    first = _run_cli([str(files["good"]), "--out", str(tmp_path / "a"), *args], tmp_path, env)
+    assert first.returncode == 0, first.stderr
+    entries = sorted(p.name for p in cache.iterdir())
+    assert entries, "the first run cached nothing"
+    second = _run_cli([str(other), "--out", str(tmp_path / "b"), *args], tmp_path, env)
+    assert second.returncode == 0, second.stderr
+    assert sorted(p.name for p in cache.iterdir()) == entries
+    off = tmp_path / "off-cache"
+    third = _run_cli(
+        [str(other), "--out", str(tmp_path / "c"), *args, "--no-compile-cache"],
+        tmp_path,
+        {"TWOSCALE_CACHE_DIR": str(off), "TWOSCALE_COMPILE_CACHE": "1"},
+    )
+    assert third.returncode == 0, third.stderr
+    assert not off.exists()

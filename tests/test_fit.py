@@ -245,16 +245,111 @@ def test_nested_start_keeps_full_model_at_least_as_good():
     data = synthetic(true, ModelConfig(diffraction=False), noise=0.01, seed=5)
     stages = [Stage(4096, 2, 25), Stage(8192, 1, 15)]
     spec = fit(data, config=ModelConfig(diffraction=False), material="conductor", schedule=stages)
-    full = fit(data, material="conductor", schedule=stages)
+    full = fit(data, config=ModelConfig(), material="conductor", schedule=stages)
     labels = [e["start"] for e in full.stages[0]["starts"]]
     assert sum("nested" in label for label in labels) == 1, labels
-    # The nested start is carried to the last stage (keep=1 there would otherwise drop it),
-    # unless it reached the same solution as a better start (then it is dropped as a duplicate).
-    first = {e["start"]: e for e in full.stages[0]["starts"]}
-    nested_entry = next(e for label, e in first.items() if "nested" in label)
-    assert "duplicate_of" in nested_entry or any(
-        "nested" in e["start"] for e in full.stages[-1]["starts"]
-    )
+    # Every start of the full model comes from the special case's fit (the nested one and the
+    # (c, A_spec) grid around it).
+    assert all("nested" in label or "from the special case" in label for label in labels)
     assert full.rmse_log <= spec.rmse_log * (1 + 1e-3), (full.rmse_log, spec.rmse_log)
-    no_nested = fit(data, material="conductor", schedule=stages[:1], nested=False)
+    no_nested = fit(
+        data, config=ModelConfig(), material="conductor", schedule=stages[:1], nested=False
+    )
     assert not any("nested" in e["start"] for e in no_nested.stages[0]["starts"])
+
+
+# ------------------------------------------------------------------ protocol, stopping, type
+def test_merl_protocol_default_is_apparatus():
+    """``fit(data)`` fits MERL data with the apparatus factor (its exponent e fitted)."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit.driver import _resolve_configs
+
+    assert all(c.apparatus for c in _resolve_configs(None, None))
+    assert all(c.apparatus for c in _resolve_configs("auto", "plastic"))
+    assert not any(c.apparatus for c in _resolve_configs(ModelConfig(), "auto"))
+    cfg = ModelConfig(material="conductor", apparatus=True, diffraction=False)
+    true = TwoScaleParams.conductor(0.12, 1.2, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0), e=0.7)
+    data = synthetic(true, cfg, noise=0.005, seed=4)
+    res = fit(data, config=cfg, schedule="preview")
+    assert res.config["apparatus"] is True and res.params.e is not None
+    assert float(res.params.e) == pytest.approx(0.7, abs=3 * res.std_errors["e"] + 1e-3)
+    assert res.std_errors["e"] > 0
+
+
+def test_capped_fit_is_kept_with_a_warning(ct_noisy):
+    """A fit stopped by the step limit is a result with a warning, not an error."""
+    far = [CookTorranceParams(1.0, [0.5, 0.5, 0.5], [0.5, 0.5, 0.5])]  # far from the truth
+    res = fit(ct_noisy, config=CT, starts=far, schedule=[Stage(4096, 1, max_steps=2)])
+    assert not res.converged and res.status == "step limit reached"
+    assert any(w.startswith("not converged: step limit reached") for w in res.warnings)
+    assert math.isfinite(res.rmse_log)
+
+
+def test_stationary_rms_counts_as_converged(ct_noisy):
+    """Rounds that no longer lower the RMS end the stage as converged, well before the cap."""
+    res = fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, max_steps=500, round_steps=5)])
+    assert res.converged and res.steps < 500
+    assert not any(w.startswith("not converged") for w in res.warnings)
+
+
+def test_parameter_at_bound_is_named():
+    """Data without MERL's fall-off, fitted with it: e ends at 0, and the warning says so."""
+    truth = CookTorranceParams(0.2, [0.8, 0.6, 0.3], [0.05, 0.1, 0.2])
+    data = synthetic(truth, CT, noise=0.0, seed=3)
+    res = fit(data, config=CookTorranceConfig("ggx", apparatus=True), schedule="preview")
+    assert float(res.params.e) < 1e-2
+    assert any(w.startswith("e = ") and "lower end" in w for w in res.warnings), res.warnings
+
+
+def test_failed_fit_raises(ct_noisy, monkeypatch):
+    """Non-finite costs from every start are a FitError (the CLI's exit 3)."""
+    import twoscale.fit.driver as driver
+
+    def broken(cand, g, stage, data, n_active, m, opts):
+        return cand.y, math.nan, np.zeros((7, 7)), 3, False, "non-finite values"
+
+    monkeypatch.setattr(driver, "_refine", broken)
+    with pytest.raises(driver.FitError, match="finite"):
+        fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 5)])
+
+
+def test_choose_type_tie_goes_to_the_physical_type():
+    from twoscale import TwoScaleParams
+    from twoscale.fit.driver import _choose_type
+
+    metal = TwoScaleParams.conductor(0.1, 1.0, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0))
+    fake_metal = TwoScaleParams.conductor(0.1, 1.0, (1.5, 1.5, 1.5), (0.01, 0.02, 0.0))
+    plastic = TwoScaleParams.plastic(0.1, 1.0, (1.5, 1.5, 1.5), (0.2, 0.3, 0.4))
+    fake_plastic = TwoScaleParams.plastic(0.1, 1.0, (3.5, 3.5, 3.5), (1e-4, 1e-4, 1e-4))
+    # A clear winner wins whatever its parameters.
+    assert _choose_type({"conductor": (0.10, metal), "plastic": (0.20, plastic)})[0] == "conductor"
+    assert _choose_type({"conductor": (0.20, metal), "plastic": (0.10, plastic)})[0] == "plastic"
+    # Within 2 %: a conductor with k ≈ 0 is a dielectric; a plastic without diffuse is a metal.
+    tie = _choose_type({"conductor": (0.100, fake_metal), "plastic": (0.101, plastic)})
+    assert tie[0] == "plastic" and "k <" in tie[1]
+    tie = _choose_type({"conductor": (0.101, metal), "plastic": (0.100, fake_plastic)})
+    assert tie[0] == "conductor" and "no diffuse" in tie[1]
+    # Both plausible: the lower RMS.
+    assert _choose_type({"conductor": (0.101, metal), "plastic": (0.100, plastic)})[0] == "plastic"
+
+
+@pytest.mark.parametrize("material", ["conductor", "plastic"])
+def test_type_choice_on_synthetic_materials(material):
+    """``material="auto"`` types a synthetic conductor as a conductor and a plastic as a plastic."""
+    from twoscale import ModelConfig, TwoScaleParams
+
+    if material == "conductor":
+        true = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+    else:
+        true = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (0.1, 0.3, 0.6), e=0.8)
+    cfg = ModelConfig(material=material, diffraction=False, apparatus=True)
+    data = synthetic(true, cfg, noise=0.01, seed=6)
+    stages = [Stage(4096, 1, 40), Stage(8192, 1, 20)]
+    res = fit(
+        data,
+        config=ModelConfig(diffraction=False, apparatus=True),
+        material="auto",
+        schedule=stages,
+    )
+    assert res.type_selection["chosen"] == material, res.type_selection
+    assert res.material == material

@@ -2,16 +2,29 @@
 
     python -m twoscale.fit material.binary [--out DIR] [--metric log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
+        [--full] [--no-apparatus] [--no-compile-cache]
     python -m twoscale.fit --example            # synthetic material, no data needed
+
+MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)²]^e``, on the
+specular lobe, with ``e`` fitted (MERL's measured values fall off at grazing angles; without it
+the model is forced to fit that fall-off with its shape parameters). ``--no-apparatus`` fits the
+bare model. The baselines (``--baseline``) follow the same switch.
+
+Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
+``$XDG_CACHE_HOME/twoscale/jax`` (default ``~/.cache/twoscale/jax``), so a second run, on any
+file, skips most of the compilation; ``--no-compile-cache`` (or ``TWOSCALE_COMPILE_CACHE=0``)
+switches it off.
 
 Writes ``DIR/params.json`` (the fit record; loads back with ``twoscale.fit.load_result``) and
 ``DIR/slices.png``, ``DIR/lobes.png``, ``DIR/spheres.png``; prints a summary on stdout and a
 progress line per start on stderr. Everything is written to a temporary folder first and moved
 into place at the end, so a failed run leaves no partial output.
 
-Exit status: 0 success; 2 bad input (unreadable file, not a MERL file, no valid cell, bad option);
-3 the fit failed or did not converge (``--allow-unconverged`` writes the result anyway);
-1 unexpected internal error. Errors are one line on stderr, without a traceback
+Exit status: 0 success, also for a usable fit with a problem (a parameter at the end of its range,
+a rank-deficient Jacobian, the step limit reached): one ``warning:`` line each on stderr, and the
+same lines in ``params.json`` (``"warnings"``); 2 bad input (unreadable file, not a MERL file, no
+valid cell, bad option); 3 the fit failed (no start gave a finite fit, or no start made any
+progress); 1 unexpected internal error. Errors are one line on stderr, without a traceback
 (``TWOSCALE_DEBUG=1`` shows it).
 """
 
@@ -36,7 +49,7 @@ class InputError(Exception):
 
 
 class FitFailed(Exception):
-    """The fit failed or did not converge: exit status 3."""
+    """The fit failed (no finite fit, no progress): exit status 3."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -55,9 +68,26 @@ def _parser() -> argparse.ArgumentParser:
         help="material type (auto: conductor and plastic, keep the better fit)",
     )
     ap.add_argument("--max-theta", type=float, help="fit only θ_i, θ_o ≤ this angle (degrees)")
-    ap.add_argument("--preview", action="store_true", help="faster fit on subsamples only")
+    sched = ap.add_mutually_exclusive_group()
+    sched.add_argument("--preview", action="store_true", help="faster: no last refinement")
+    sched.add_argument(
+        "--full", action="store_true", help="last refinement on every valid cell (slower)"
+    )
     ap.add_argument("--example", action="store_true", help="fit a synthetic material (no data)")
     ap.add_argument("--no-diffraction", action="store_true", help="specular lobe (+ diffuse) only")
+    ap.add_argument(
+        "--apparatus",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="MERL's grazing fall-off L(θ_i) L(θ_o) on the specular lobe, exponent e fitted "
+        "(default: on; --no-apparatus for the bare model)",
+    )
+    ap.add_argument(
+        "--compile-cache",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="keep compiled code between runs (JAX persistent cache; default: on)",
+    )
     ap.add_argument(
         "--baseline",
         choices=("ggx", "beckmann"),
@@ -75,9 +105,35 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-plots", action="store_true", help="write params.json only")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     ap.add_argument(
-        "--allow-unconverged", action="store_true", help="write the result even if not converged"
+        "--allow-unconverged",
+        action="store_true",
+        help="kept for old scripts: an unconverged fit is now always written, with a warning",
     )
     return ap
+
+
+def cache_dir() -> Path:
+    """Folder of the persistent compilation cache (see the module doc)."""
+    if os.environ.get("TWOSCALE_CACHE_DIR"):
+        return Path(os.environ["TWOSCALE_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "twoscale" / "jax"
+
+
+def enable_compile_cache(log) -> Path | None:
+    """Point JAX's persistent compilation cache at :func:`cache_dir` (None if it cannot be used)."""
+    import jax
+
+    path = cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        log(f"compilation cache off: cannot create {path} ({err.strerror or err})")
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # The fit's solves take seconds to compile; tiny functions are not worth a file.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return path
 
 
 def _parse_fixed(items) -> dict:
@@ -95,16 +151,18 @@ def _parse_fixed(items) -> dict:
 
 
 def _example_data():
-    """The ``--example`` material: the model itself + 1 % noise + a realistic invalid mask."""
+    """The ``--example`` material: the model itself (with the apparatus factor, as MERL data) +
+    1 % noise + a realistic invalid mask."""
     from twoscale.config import ModelConfig
     from twoscale.fit.synthetic import synthetic
     from twoscale.params import TwoScaleParams
 
     e = EXAMPLE
     params = TwoScaleParams.conductor(
-        e["beta"], e["p"], e["eta"], e["k"], sigma_s=e["sigma_s"], b=e["b"], c=e["c"]
+        e["beta"], e["p"], e["eta"], e["k"], sigma_s=e["sigma_s"], b=e["b"], c=e["c"], e=e["e"]
     )
-    data = synthetic(params, ModelConfig(material="conductor"), noise=0.01, seed=1, name="example")
+    config = ModelConfig(material="conductor", apparatus=True)
+    data = synthetic(params, config, noise=0.01, seed=1, name="example")
     return data, params
 
 
@@ -170,6 +228,10 @@ def _run(args, log) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    if args.compile_cache and os.environ.get("TWOSCALE_COMPILE_CACHE", "1") != "0":
+        where = enable_compile_cache(log)
+        if where is not None:
+            log(f"compilation cache: {where}")
     from twoscale.baselines import CookTorranceConfig
     from twoscale.config import ModelConfig
     from twoscale.fit.driver import FitError, fit
@@ -188,9 +250,9 @@ def _run(args, log) -> int:
 
     material = None if args.baseline else args.material_type
     if args.baseline:
-        config = CookTorranceConfig(args.baseline)
+        config = CookTorranceConfig(args.baseline, apparatus=args.apparatus)
     else:
-        config = ModelConfig(diffraction=not args.no_diffraction)
+        config = ModelConfig(diffraction=not args.no_diffraction, apparatus=args.apparatus)
     if args.example and args.material_type == "auto":
         material = "conductor"  # known for the example: keeps it fast
     try:
@@ -201,7 +263,7 @@ def _run(args, log) -> int:
             metric=args.metric,
             max_theta_deg=args.max_theta,
             fixed=fixed,
-            schedule="preview" if args.preview else "default",
+            schedule="preview" if args.preview else "full" if args.full else "default",
             solver=args.solver,
             seed=args.seed,
             progress=log,
@@ -210,12 +272,11 @@ def _run(args, log) -> int:
         raise FitFailed(str(err)) from None
     except ValueError as err:
         raise InputError(str(err)) from None
-    if not result.converged and not args.allow_unconverged:
-        raise FitFailed(
-            f"the fit did not converge ({result.status}; log RMSE {result.rmse_log:.4g}); "
-            "rerun with --allow-unconverged to keep it"
-        )
+    if result.steps == 0 and not result.converged:
+        raise FitFailed(f"the fit made no progress from any start ({result.status})")
     names = _write_outputs(out, result, data, not args.no_plots, log)
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     print(result.summary())
     if truth is not None:
         print("example truth: " + ", ".join(f"{k}={v}" for k, v in truth.to_dict().items()))

@@ -73,13 +73,19 @@ class FitResult:
         per_channel: ``{"rmse_linear": [C], "rmse_log": [C]}``.
         rmse_fit: RMSE of the fitted metric on the fitted cells (after any angle cut).
         n_valid, n_fit: number of valid cells, of fitted cells.
-        converged: the last stage's solver reported success; ``status`` is its message.
+        converged: the last stage ended by a convergence test (the solver's own, the
+            standard-error test, or an RMS that stopped falling), not at the step limit;
+            ``status`` says which.
         steps: solver steps of the last stage; ``stages`` has the per-stage, per-start details.
         wall_time: seconds for the whole fit (compilation included).
         std_errors: standard errors in physical units, ``None`` for fixed parameters
             (``σ² (JᵀJ)⁺`` at the solution, mapped by the bijection's Jacobian).
         covariance: how the errors were obtained (rank, rank deficiency, σ², note).
         settings, versions, data: provenance.
+        rmse_80: ``{"log", "linear", "n_cells"}``: the same RMSEs on the valid cells with
+            ``θ_i, θ_o ≤ 80°`` (None when there is none).
+        warnings: one line per problem of an otherwise usable fit (a parameter at a bound, a
+            rank-deficient Jacobian, the step limit reached); printed by the CLI.
     """
 
     params: Any
@@ -104,6 +110,8 @@ class FitResult:
     stages: list = dataclasses.field(default_factory=list)
     type_selection: dict | None = None
     params_dict: dict | None = None
+    rmse_80: dict | None = None
+    warnings: list = dataclasses.field(default_factory=list)
 
     @property
     def material(self) -> str:
@@ -128,6 +136,7 @@ class FitResult:
                     "rmse_fit": self.rmse_fit,
                     "n_valid": self.n_valid,
                     "n_fit": self.n_fit,
+                    "within_80_deg": self.rmse_80,
                 },
                 "convergence": {
                     "converged": self.converged,
@@ -141,6 +150,7 @@ class FitResult:
                 "data": self.data,
                 "stages": self.stages,
                 "type_selection": self.type_selection,
+                "warnings": list(self.warnings),
             }
         )
 
@@ -156,7 +166,13 @@ class FitResult:
         lines = [
             f"model {self.model} ({self.material}), metric {self.metric}, "
             f"{self.n_fit} of {self.n_valid} valid cells fitted",
-            f"RMSE (all valid cells): log {self.rmse_log:.4g}, linear {self.rmse_linear:.4g}",
+            f"RMSE (all valid cells): log {self.rmse_log:.4g}, linear {self.rmse_linear:.4g}"
+            + (
+                f"; θ_i, θ_o ≤ 80°: log {self.rmse_80['log']:.4g}, "
+                f"linear {self.rmse_80['linear']:.4g}"
+                if self.rmse_80
+                else ""
+            ),
             f"{'converged' if self.converged else 'NOT converged'} ({self.status or 'ok'}), "
             f"{self.steps} steps, {self.wall_time:.1f} s",
         ]
@@ -166,8 +182,7 @@ class FitResult:
                 continue
             se = self.std_errors.get(name)
             lines.append(f"  {name:8s} = {_fmt(value)}" + (f"  ± {_fmt(se)}" if se else ""))
-        if self.covariance.get("rank_deficient"):
-            lines.append(f"  note: {self.covariance.get('note', 'rank-deficient Jacobian')}")
+        lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -218,6 +233,8 @@ def result_from_dict(d: dict) -> FitResult:
         stages=d.get("stages", []),
         type_selection=d.get("type_selection"),
         params_dict=d["params"],
+        rmse_80=m.get("within_80_deg"),
+        warnings=list(d.get("warnings", [])),
     )
 
 

@@ -7,7 +7,8 @@ import numpy as np
 from twoscale.fit.adapters import adapter_for
 from twoscale.fit.residuals import Cells
 
-#: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo.
+#: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo,
+#: measured through MERL's apparatus (``e``: the grazing fall-off of the specular lobe).
 EXAMPLE = dict(
     beta=0.12,
     p=1.4,
@@ -16,6 +17,7 @@ EXAMPLE = dict(
     sigma_s=0.012,
     b=1.5,
     c=2.2,
+    e=0.8,
 )
 
 #: Fraction of above-horizon cells dropped at random by :func:`synthetic` (with the cells below
