@@ -1,6 +1,8 @@
-"""Fitting campaign: every MERL ``.binary`` of a folder plus the 12 Neural-BRDF stand-ins.
+"""Fitting campaign: every MERL ``.binary`` of a folder plus the 60 Neural-BRDF stand-ins.
 
-    python -m fit.campaign --out fit/RESULTS.md [--folder DIR] [--preview] [--limit N]
+    python -m fit.campaign [--out fit/RESULTS.md] [--folder DIR] [--preview] [--limit N]
+        [--materials NAME ...] [--records DIR [--resume]] [--gallery DIR | --no-gallery]
+        [--no-apparatus]
 
 For each material it fits, with the same driver, metric and schedule:
 
@@ -8,16 +10,26 @@ For each material it fits, with the same driver, metric and schedule:
 2. the specular lobe alone (EPD + diffuse, diffraction off), same material type;
 3. the Cook-Torrance + Lambert baselines (GGX and Beckmann, :mod:`twoscale.baselines`);
 
-and writes a Markdown table of the RMSE (cosine-weighted log and linear metrics, all valid cells)
-with a summary of where the full model wins and loses. The Neural-BRDF materials are rendered to a
-temporary folder (never into the repository): they are MLP approximations of the MERL data, not
-the measurements. ``--records DIR`` also keeps every fit's ``params.json``.
+every one with MERL's apparatus factor ``L(θ_i) L(θ_o)`` on the specular term (``--no-apparatus``
+turns it off for all of them). It writes a Markdown report: log and linear RMSE on all valid cells
+and on the cells with ``θ_i, θ_o ≤ 80°``, the material type chosen against the one expected from
+the material's name (:func:`expected_type`), convergence and times, and a summary computed from
+these rows. The report is rewritten after every material, so a long campaign can be watched.
+
+``--records DIR`` keeps every fit's ``params.json`` (``DIR/<material>/<model>.json``, with a
+``"campaign"`` entry holding the report's row); ``--resume`` reuses those made with the same
+settings, so an interrupted campaign continues where it stopped. The gallery (``--gallery DIR``,
+:mod:`fit.gallery`) holds one small picture per material and an index, ``GALLERY.md``.
+
+The Neural-BRDF materials are rendered to a temporary folder (never into the repository): they are
+MLP approximations of the MERL data, not the measurements.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import platform
 import sys
@@ -28,38 +40,227 @@ from pathlib import Path
 import numpy as np
 
 MODELS = ("full", "specular", "ggx", "beckmann")
-_LABELS = {
+LABELS = {
     "full": "two-scale",
     "specular": "EPD + diffuse",
     "ggx": "GGX + Lambert",
     "beckmann": "Beckmann + Lambert",
 }
+BASELINES = ("ggx", "beckmann")
+#: The second RMSE of the report: valid cells with θ_i, θ_o at or below this angle (degrees).
+THETA_CUT = 80.0
+#: Ratio of linear RMSEs (two-scale / best baseline) above which the summary names a material.
+LINEAR_RATIO = 2.0
+
+# --------------------------------------------------------------------------------------------
+# Expected material type, from the material's name
+# --------------------------------------------------------------------------------------------
+
+#: Words that make a material neither clearly a metal nor a dielectric: paints (metallic flakes
+#: in a dielectric binder, even "gold-metallic-paint"), alumina (a ceramic, not aluminium) and
+#: hematite (an iron oxide, a semiconductor with a metallic sheen).
+NEUTRAL_WORDS = ("paint", "alumina", "hematite")
+#: Dielectrics the "plastic" type stands for: plastics, phenolics, acrylics, rubbers, fabrics,
+#: latex, nylon, polymers (poly…, pvc, vinyl, delrin, teflon) and the white diffuse basketball.
+PLASTIC_WORDS = (
+    "plastic",
+    "phenolic",
+    "acrylic",
+    "rubber",
+    "neoprene",
+    "fabric",
+    "felt",
+    "latex",
+    "nylon",
+    "pvc",
+    "vinyl",
+    "poly",
+    "delrin",
+    "teflon",
+    "bball",
+)
+#: Metals (and alloys, carbides) the "conductor" type stands for.
+METAL_WORDS = (
+    "steel",
+    "ss440",
+    "silver",
+    "gold",
+    "brass",
+    "copper",
+    "nickel",
+    "chrome",
+    "alumin",
+    "bronze",
+    "tungsten",
+    "titanium",
+    "iron",
+    "zinc",
+    "platinum",
+    "metal",
+)
+TYPES = ("conductor", "plastic", "either")
+
+
+def expected_type(name: str) -> str:
+    """The material type a good fit should choose for a material, from its name.
+
+    The name is split into words at ``-``, ``_`` and spaces; a keyword matches a word that starts
+    with it (``paint`` matches ``paint2``, ``alumin`` matches ``aluminium``). Rules, in order:
+    a word of :data:`NEUTRAL_WORDS` gives ``"either"``; then one of :data:`PLASTIC_WORDS` gives
+    ``"plastic"``; then one of :data:`METAL_WORDS` gives ``"conductor"``; anything else (woods,
+    stones, ceramics, unknown names) is ``"either"``.
+
+    >>> [expected_type(n) for n in ("chrome-steel", "gold-metallic-paint", "red-fabric2", "pvc")]
+    ['conductor', 'either', 'plastic', 'plastic']
+    """
+    words = [w for w in name.lower().replace("_", "-").replace(" ", "-").split("-") if w]
+    for keywords, kind in (
+        (NEUTRAL_WORDS, "either"),
+        (PLASTIC_WORDS, "plastic"),
+        (METAL_WORDS, "conductor"),
+    ):
+        if any(w.startswith(k) for w in words for k in keywords):
+            return kind
+    return "either"
+
+
+# --------------------------------------------------------------------------------------------
+# One material
+# --------------------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass
 class Row:
+    """One material of the report: per model (keys of :data:`MODELS`) its errors, convergence,
+    time and warnings.
+
+    Attributes:
+        material: the type chosen by the full model; ``expected`` the one from the name
+            (:func:`expected_type` when left empty).
+        rmse_log, rmse_lin: RMSE on all valid cells; ``rmse_log_80``, ``rmse_lin_80`` on the valid
+            cells with ``θ_i, θ_o ≤`` :data:`THETA_CUT` (``n_cells_80`` of them).
+        resumed: models whose result was reused from a record (``--resume``).
+    """
+
     name: str
     source: str
     material: str = ""
+    expected: str = ""
     rmse_log: dict = dataclasses.field(default_factory=dict)
     rmse_lin: dict = dataclasses.field(default_factory=dict)
+    rmse_log_80: dict = dataclasses.field(default_factory=dict)
+    rmse_lin_80: dict = dataclasses.field(default_factory=dict)
+    n_cells_80: int = 0
     converged: dict = dataclasses.field(default_factory=dict)
     seconds: dict = dataclasses.field(default_factory=dict)
+    warnings: dict = dataclasses.field(default_factory=dict)
+    resumed: list = dataclasses.field(default_factory=list)
     error: str = ""
 
+    def __post_init__(self):
+        if not self.expected:
+            self.expected = expected_type(self.name)
 
-def _materials(folder, with_nbrdf: bool, tmp: Path, nbrdf_npz=None, log=print):
-    items = []
-    if folder:
-        for p in sorted(Path(folder).glob("*.binary")):
-            items.append((p.stem, "MERL", p))
-    if with_nbrdf:
-        from fit.nbrdf import render_all
+    @property
+    def complete(self) -> bool:
+        """No error and a log RMSE for every model."""
+        return not self.error and all(k in self.rmse_log for k in MODELS)
 
-        log("rendering the Neural-BRDF stand-ins to a temporary folder")
-        for p in render_all(tmp, npz_path=nbrdf_npz):
-            items.append((p.stem, "Neural-BRDF", p))
-    return items
+    @property
+    def type_match(self) -> bool | None:
+        """Chosen type = expected type; ``None`` where either type is acceptable (or no fit)."""
+        if self.expected == "either" or not self.material:
+            return None
+        return self.material == self.expected
+
+
+def _baseline_config(dist: str, apparatus: bool = True):
+    """``CookTorranceConfig(dist, apparatus=...)``; a clear error where the field is missing."""
+    from twoscale.baselines import CookTorranceConfig
+
+    if not apparatus:
+        return CookTorranceConfig(dist)
+    if "apparatus" not in {f.name for f in dataclasses.fields(CookTorranceConfig)}:
+        raise RuntimeError(
+            "this twoscale's CookTorranceConfig has no apparatus field: run with --no-apparatus"
+        )
+    return CookTorranceConfig(dist, apparatus=True)
+
+
+def _cell_rmse(pred: np.ndarray, cells) -> dict:
+    """RMSE over cells and channels of the cosine-weighted log and linear metrics (as the fit)."""
+    cos = cells.cos_i[:, None]
+    log = np.log1p(np.maximum(pred, 0.0) * cos) - np.log1p(cells.rho * cos)
+    lin = (pred - cells.rho) * cos
+    return {
+        "log": float(np.sqrt(np.mean(log**2))),
+        "linear": float(np.sqrt(np.mean(lin**2))),
+        "n_cells": len(cells),
+    }
+
+
+def rmse_below(res, cells) -> dict:
+    """``{"log", "linear", "n_cells"}`` of a result on ``cells`` (the valid cells with
+    ``θ_i, θ_o ≤`` :data:`THETA_CUT`): the result's own ``rmse_80`` where it has one, else
+    computed from its parameters."""
+    got = getattr(res, "rmse_80", None)
+    if got:
+        return dict(got)
+    from twoscale.fit.adapters import adapter_for, config_from_dict
+    from twoscale.fit.driver import predict_cells
+
+    adapter = adapter_for(config_from_dict(res.config))
+    return _cell_rmse(np.asarray(predict_cells(adapter, res.params, cells)), cells)
+
+
+def _settings_key(settings: dict) -> dict:
+    """The settings a record must share to be reused by ``--resume``."""
+    return {k: settings.get(k) for k in ("schedule", "metric", "apparatus", "max_theta")}
+
+
+def _record_entry(row: Row, key: str, settings: dict) -> dict:
+    def num(x):
+        return None if x is None or not math.isfinite(x) else float(x)
+
+    return {
+        "source": row.source,
+        "settings": _settings_key(settings),
+        "seconds": num(row.seconds.get(key)),
+        "rmse_80": {
+            "log": num(row.rmse_log_80.get(key)),
+            "linear": num(row.rmse_lin_80.get(key)),
+            "n_cells": row.n_cells_80,
+        },
+        "warnings": list(row.warnings.get(key, [])),
+    }
+
+
+def _save_record(path: Path, res, entry: dict) -> None:
+    """``res``'s ``params.json`` with the campaign's row entry (``load_result`` ignores it)."""
+    from twoscale.fit.record import write_text_atomic
+
+    d = res.to_dict()
+    d["campaign"] = entry
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, json.dumps(d, indent=2, allow_nan=False) + "\n")
+
+
+def _load_record(path: Path, settings: dict, source: str):
+    """``(FitResult, campaign entry)`` of a record made with the same settings, else ``None``."""
+    from twoscale.fit.record import result_from_dict
+
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        entry = d["campaign"]
+        if entry["settings"] != _settings_key(settings) or entry.get("source") != source:
+            return None
+        return result_from_dict(d), entry
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _num(x) -> float:
+    return math.nan if x is None else float(x)
 
 
 def fit_material(
@@ -67,150 +268,375 @@ def fit_material(
     *,
     metric: str,
     schedule: str,
+    apparatus: bool = True,
+    source: str = "",
     log=print,
     records: Path | None = None,
+    resume: bool = False,
     max_theta_deg: float | None = None,
 ):
-    """Fit the four models to one file; returns a :class:`Row`."""
+    """Fit the four models to one file.
+
+    Returns ``(row, results, data)``: the :class:`Row`, ``{model key: FitResult}`` and the
+    :class:`twoscale.merl.MerlData`. With ``records``, every result is saved as
+    ``records/<material>/<key>.json``; with ``resume`` too, a record made with the same settings
+    (schedule, metric, apparatus, angle cut, source) is reused instead of fitting again.
+    """
     from twoscale import merl
-    from twoscale.baselines import CookTorranceConfig
     from twoscale.config import ModelConfig
     from twoscale.fit import fit
+    from twoscale.fit.residuals import select_cells
 
     data = merl.read(path)
-    row = Row(name=data.name, source="")
+    row = Row(name=data.name, source=source)
+    settings = {
+        "schedule": schedule,
+        "metric": metric,
+        "apparatus": apparatus,
+        "max_theta": max_theta_deg,
+    }
+    cells_80 = select_cells(data, max_theta_deg=THETA_CUT).fit
+    row.n_cells_80 = len(cells_80)
+    results = {}
 
-    def run(key, **kw):
-        t = time.perf_counter()
-        res = fit(data, metric=metric, schedule=schedule, max_theta_deg=max_theta_deg, **kw)
-        row.seconds[key] = time.perf_counter() - t
+    def run(key, config, material=None):
+        record = None if records is None else records / data.name / f"{key}.json"
+        old = _load_record(record, settings, source) if resume and record is not None else None
+        if old is not None and material not in (None, "auto", old[0].material):
+            old = None  # EPD + diffuse of another type than the full model's
+        if old is not None:
+            res, entry = old
+            row.seconds[key] = _num(entry.get("seconds"))
+            got = entry.get("rmse_80") or {}
+            rmse_80 = {"log": _num(got.get("log")), "linear": _num(got.get("linear"))}
+            row.warnings[key] = list(entry.get("warnings", []))
+            row.resumed.append(key)
+        else:
+            t = time.perf_counter()
+            kw = {} if material is None else {"material": material}
+            res = fit(
+                data,
+                config=config,
+                metric=metric,
+                schedule=schedule,
+                max_theta_deg=max_theta_deg,
+                **kw,
+            )
+            row.seconds[key] = time.perf_counter() - t
+            rmse_80 = rmse_below(res, cells_80)
+            row.warnings[key] = [str(w) for w in getattr(res, "warnings", None) or []]
         row.rmse_log[key] = res.rmse_log
         row.rmse_lin[key] = res.rmse_linear
+        row.rmse_log_80[key] = rmse_80["log"]
+        row.rmse_lin_80[key] = rmse_80["linear"]
         row.converged[key] = res.converged
+        results[key] = res
         log(
-            f"  {data.name} {_LABELS[key]}: log RMSE {res.rmse_log:.4g}, linear {res.rmse_linear:.4g} "
-            f"({row.seconds[key]:.0f} s{'' if res.converged else ', not converged'})"
+            f"  {data.name} {LABELS[key]}: log RMSE {res.rmse_log:.4g} "
+            f"(≤ {THETA_CUT:g}°: {rmse_80['log']:.4g}), linear {res.rmse_linear:.4g} "
+            f"({row.seconds[key]:.0f} s{'' if res.converged else ', not converged'}"
+            f"{', from the record' if key in row.resumed else ''})"
         )
-        if records is not None:
-            (records / data.name).mkdir(parents=True, exist_ok=True)
-            res.save(records / data.name / f"{key}.json")
+        if record is not None and key not in row.resumed:
+            _save_record(record, res, _record_entry(row, key, settings))
         return res
 
-    full = run("full", config=ModelConfig(), material="auto")
+    full = run("full", ModelConfig(apparatus=apparatus), "auto")
     row.material = full.material
-    run("specular", config=ModelConfig(diffraction=False), material=full.material)
-    run("ggx", config=CookTorranceConfig("ggx"))
-    run("beckmann", config=CookTorranceConfig("beckmann"))
-    return row
+    run("specular", ModelConfig(apparatus=apparatus, diffraction=False), full.material)
+    for key in BASELINES:
+        run(key, _baseline_config(key, apparatus))
+    return row, results, data
 
 
-def _fmt(x) -> str:
-    return "—" if x is None or not math.isfinite(x) else f"{x:.4f}"
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+
+def _fmt(x, digits: int = 4) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _names(items) -> str:
+    return ", ".join(items) if items else "none"
+
+
+def _median(x) -> float:
+    return float(np.median(x)) if len(x) else math.nan
 
 
 def summary_sentences(rows: list[Row]) -> list[str]:
-    """Plain statements of where the full model wins and loses (log metric)."""
-    ok = [r for r in rows if not r.error and all(k in r.rmse_log for k in MODELS)]
+    """Statements computed from the rows: wins and losses of the two-scale model, type accuracy,
+    convergence and time, each exception named."""
+    ok = [r for r in rows if r.complete]
+    failed = [r.name for r in rows if not r.complete]
     if not ok:
-        return ["No material was fitted successfully."]
+        return ["No material was fitted with all four models."]
     n = len(ok)
-    full = np.array([r.rmse_log["full"] for r in ok])
-    spec = np.array([r.rmse_log["specular"] for r in ok])
-    base = np.array([min(r.rmse_log["ggx"], r.rmse_log["beckmann"]) for r in ok])
-    better_spec = full < spec * (1 - 1e-3)
-    better_base = full < base * (1 - 1e-3)
-    rel_spec = np.median((spec - full) / spec) * 100
-    rel_base = np.median((base - full) / base) * 100
     lines = [
-        f"Over {n} material(s), the full two-scale model has a lower log RMSE than the specular "
-        f"lobe alone on {int(better_spec.sum())} (median improvement {rel_spec:.1f} %) and than "
-        f"the better Cook-Torrance baseline on {int(better_base.sum())} (median difference "
-        f"{rel_base:.1f} %)."
+        f"- Materials fitted with all four models: {n} of {len(rows)}"
+        + (f" (failed or incomplete: {_names(failed)})." if failed else ".")
     ]
-    losers = [r.name for r, b in zip(ok, better_base, strict=True) if not b]
-    if losers:
-        lines.append(f"It does not beat the best baseline on: {', '.join(losers)}.")
-    same = [r.name for r, b in zip(ok, better_spec, strict=True) if not b]
-    if same:
-        lines.append(
-            "The diffraction lobe brings no gain (within 0.1 %) on: "
-            f"{', '.join(same)} — these are fitted as well by the specular lobe alone."
+
+    def compare(values, where: str) -> str:
+        have = [r for r in ok if all(math.isfinite(values(r).get(k, math.nan)) for k in MODELS)]
+        if not have:
+            return f"- Log RMSE, {where}: not available."
+        full = np.array([values(r)["full"] for r in have])
+        ggx = np.array([values(r)["ggx"] for r in have])
+        best = np.array([min(values(r)[k] for k in BASELINES) for r in have])
+        below_ggx = full < ggx
+        below_best = full < best
+        rel = (ggx - full) / ggx * 100
+        not_ggx = [r.name for r, b in zip(have, below_ggx, strict=True) if not b]
+        not_best = [r.name for r, b in zip(have, below_best, strict=True) if not b]
+        return (
+            f"- Log RMSE, {where}: the two-scale model is below GGX + Lambert on "
+            f"{int(below_ggx.sum())} of {len(have)} materials (not on: {_names(not_ggx)}) and "
+            f"below the better baseline on {int(below_best.sum())} of {len(have)} (not on: "
+            f"{_names(not_best)}). Relative improvement over GGX + Lambert: median "
+            f"{np.median(rel):.1f} %, range {rel.min():.1f} % to {rel.max():.1f} %."
         )
-    nbrdf = [r for r in ok if r.source == "Neural-BRDF"]
-    if nbrdf:
+
+    lines.append(compare(lambda r: r.rmse_log, "all valid cells"))
+    lines.append(compare(lambda r: r.rmse_log_80, f"cells with θ_i, θ_o ≤ {THETA_CUT:g}°"))
+
+    worse = [
+        f"{r.name} ({r.rmse_log['full']:.5g} vs {r.rmse_log['specular']:.5g}, "
+        f"{100 * (r.rmse_log['full'] / r.rmse_log['specular'] - 1):+.2g} %)"
+        for r in ok
+        if r.rmse_log["full"] > r.rmse_log["specular"]
+    ]
+    lines.append(
+        "- Two-scale log RMSE above its own special case EPD + diffuse (all valid cells): "
+        + (f"on {len(worse)} material(s): {', '.join(worse)}." if worse else "on no material.")
+    )
+
+    ratios = []
+    for r in ok:
+        best = min(r.rmse_lin[k] for k in BASELINES)
+        if r.rmse_lin["full"] > LINEAR_RATIO * best:
+            ratios.append(f"{r.name} ({r.rmse_lin['full'] / best:.1f}×)")
+    lines.append(
+        f"- Two-scale linear RMSE more than {LINEAR_RATIO:g}× the better baseline's (all valid "
+        "cells): " + (f"on {len(ratios)}: {', '.join(ratios)}." if ratios else "on no material.")
+    )
+
+    typed = [r for r in ok if r.type_match is not None]
+    wrong = [f"{r.name} ({r.material}, expected {r.expected})" for r in typed if not r.type_match]
+    either = [r.name for r in ok if r.type_match is None]
+    if typed:
         lines.append(
-            "Neural-BRDF rows are fits to MLP approximations of the MERL data (errors of several %, "
-            "worst at grazing angles and sharp peaks), not to the measurements."
+            f"- Material type: {len(typed) - len(wrong)} of {len(typed)} materials with an "
+            f"unambiguous expected type chosen correctly ({100 * (1 - len(wrong) / len(typed)):.0f} "
+            f"%); wrong: {_names(wrong)}. {len(either)} material(s) accept either type."
+        )
+    else:
+        lines.append(f"- Material type: no material with an unambiguous expected type ({n}).")
+
+    n_conv = sum(bool(r.converged.get(k)) for r in ok for k in MODELS)
+    not_conv = [
+        f"{LABELS[k]}: {_names([r.name for r in ok if not r.converged.get(k)])}" for k in MODELS
+    ]
+    lines.append(
+        f"- Convergence: {n_conv} of {4 * n} fits converged; not converged — "
+        + "; ".join(not_conv)
+        + "."
+    )
+
+    times = [(r.seconds.get("full", math.nan), r.name) for r in ok]
+    times = [(t, name) for t, name in times if math.isfinite(t)]
+    if times:
+        t_max, name_max = max(times)
+        total = sum(t for r in ok for t in r.seconds.values() if math.isfinite(t))
+        lines.append(
+            f"- Time of the two-scale fit: median {_median([t for t, _ in times]):.0f} s, "
+            f"max {t_max:.0f} s ({name_max}); all fits of these materials: {total:.0f} s."
+        )
+    resumed = [r.name for r in ok if r.resumed]
+    if resumed:
+        lines.append(
+            f"- Reused from records (`--resume`, times from the original runs): {_names(resumed)}."
+        )
+    if any(r.source == "Neural-BRDF" for r in ok):
+        lines.append(
+            "- Neural-BRDF rows are fits to MLP approximations of the MERL measurements "
+            "(`fit/nbrdf.py`), not to the measurements."
         )
     return lines
 
 
-def write_report(path, rows: list[Row], settings: dict) -> Path:
-    from twoscale.fit.record import package_versions, write_text_atomic
-
+def _metric_table(rows: list[Row], values, *, with_type: bool = False) -> list[str]:
+    """One Markdown table of a metric (``values(row) -> {key: float}``), best of a row in bold,
+    † after a fit that did not converge."""
+    head = "| material | "
+    rule = "| --- | "
+    if with_type:
+        head += "source | type | expected | match | "
+        rule += "--- | --- | --- | :---: | "
     lines = [
-        "# Fitting campaign: two-scale model vs specular lobe vs Cook-Torrance baselines",
-        "",
-        f"Generated by `python -m fit.campaign` ({settings['schedule']} schedule, metric "
-        f"`{settings['metric']}`). RMSE over all valid cells and channels of the cosine-weighted "
-        "log metric `log(1 + ρ_model cos θ_i) − log(1 + ρ_meas cos θ_i)` (linear metric "
-        "`(ρ_model − ρ_meas) cos θ_i` in the second table). Lower is better; the best of each row "
-        "is in bold.",
-        "",
-        "| material | source | type | " + " | ".join(_LABELS[k] for k in MODELS) + " | time (s) |",
-        "| --- | --- | --- | " + " | ".join("---:" for _ in MODELS) + " | ---: |",
+        head + " | ".join(LABELS[k] for k in MODELS) + " |",
+        rule + " | ".join("---:" for _ in MODELS) + " |",
     ]
     for r in rows:
+        prefix = f"| {r.name} | "
+        if with_type:
+            match = {True: "yes", False: "**no**", None: "—"}[r.type_match]
+            prefix += f"{r.source} | {r.material or '—'} | {r.expected} | {match} | "
         if r.error:
-            lines.append(
-                f"| {r.name} | {r.source} | — | "
-                + " | ".join("—" for _ in MODELS)
-                + f" | failed: {r.error} |"
-            )
+            lines.append(prefix + " | ".join("—" for _ in MODELS) + f" failed: {r.error} |")
             continue
-        best = min(r.rmse_log.get(k, math.inf) for k in MODELS)
+        vals = values(r)
+        finite = [vals[k] for k in MODELS if math.isfinite(vals.get(k, math.nan))]
+        best = min(finite) if finite else None
         cells = []
         for k in MODELS:
-            v = r.rmse_log.get(k)
+            v = vals.get(k, math.nan)
             s = _fmt(v)
-            if v is not None and v == best:
+            if best is not None and v == best:
                 s = f"**{s}**"
-            if not r.converged.get(k, True):
+            if k in r.converged and not r.converged[k]:
                 s += "†"
             cells.append(s)
-        total = sum(r.seconds.values())
-        lines.append(
-            f"| {r.name} | {r.source} | {r.material} | " + " | ".join(cells) + f" | {total:.0f} |"
-        )
-    lines += [
-        "",
-        "† the solver stopped at its step limit (result kept).",
-        "",
-        "Linear metric:",
-        "",
-        "| material | " + " | ".join(_LABELS[k] for k in MODELS) + " |",
-        "| --- | " + " | ".join("---:" for _ in MODELS) + " |",
+        lines.append(prefix + " | ".join(cells) + " |")
+    return lines
+
+
+def _time_table(rows: list[Row]) -> list[str]:
+    lines = [
+        "| material | " + " | ".join(LABELS[k] for k in MODELS) + " | total |",
+        "| --- | " + " | ".join("---:" for _ in MODELS) + " | ---: |",
     ]
     for r in rows:
-        if not r.error:
-            lines.append(
-                f"| {r.name} | " + " | ".join(_fmt(r.rmse_lin.get(k)) for k in MODELS) + " |"
-            )
-    lines += ["", "## Summary", ""] + summary_sentences(rows)
+        if r.error and not r.seconds:
+            continue
+        secs = [r.seconds.get(k, math.nan) for k in MODELS]
+        total = sum(s for s in secs if math.isfinite(s))
+        lines.append(
+            f"| {r.name}{' (records)' if r.resumed else ''} | "
+            + " | ".join(_fmt(s, 0) for s in secs)
+            + f" | {total:.0f} |"
+        )
+    return lines
+
+
+def _warning_lines(rows: list[Row]) -> list[str]:
+    out = []
+    for r in rows:
+        for k in MODELS:
+            for w in r.warnings.get(k, []):
+                out.append(f"- {r.name}, {LABELS[k]}: {w}")
+    return out
+
+
+def write_report(path, rows: list[Row], settings: dict) -> Path:
+    """Write the Markdown report of the campaign (tables, summary, settings, empty notes)."""
+    from twoscale.fit.record import package_versions, write_text_atomic
+
+    cut = f"θ_i, θ_o ≤ {THETA_CUT:g}°"
+    apparatus = settings.get("apparatus", True)
+    lines = [
+        "# Fitting campaign: two-scale model vs EPD + diffuse vs Cook-Torrance baselines",
+        "",
+        f"Generated by `python -m fit.campaign` ({settings['schedule']} schedule, fitted metric "
+        f"`{settings['metric']}`, MERL's apparatus factor "
+        + ("on for every model" if apparatus else "off (`--no-apparatus`)")
+        + "). RMSE over cells and channels of the cosine-weighted log metric "
+        "`log(1 + ρ_model cos θ_i) − log(1 + ρ_meas cos θ_i)` and linear metric "
+        f"`(ρ_model − ρ_meas) cos θ_i`, on all valid cells and on the valid cells with {cut}. "
+        "Lower is better; the best of each row is in bold; † marks a fit whose solver stopped at "
+        "its step limit (result kept). *type*: the material type the two-scale model chose "
+        "(conductor or plastic); *expected*: the type expected from the material's name "
+        "(`expected_type` in `fit/campaign.py`; either = no expectation).",
+        "",
+        "## Log RMSE, all valid cells",
+        "",
+        *_metric_table(rows, lambda r: r.rmse_log, with_type=True),
+        "",
+        f"## Log RMSE, {cut}",
+        "",
+        *_metric_table(rows, lambda r: r.rmse_log_80),
+        "",
+        "## Linear RMSE, all valid cells",
+        "",
+        *_metric_table(rows, lambda r: r.rmse_lin),
+        "",
+        f"## Linear RMSE, {cut}",
+        "",
+        *_metric_table(rows, lambda r: r.rmse_lin_80),
+        "",
+        "## Time (s)",
+        "",
+        *_time_table(rows),
+        "",
+        "## Summary",
+        "",
+        "Computed from the rows above (a material counts when all four models were fitted).",
+        "",
+        *summary_sentences(rows),
+    ]
+    warnings = _warning_lines(rows)
+    if warnings:
+        lines += ["", "## Fit warnings", "", *warnings]
     v = package_versions()
+    max_theta = settings.get("max_theta")
     lines += [
         "",
         "## Settings",
         "",
-        f"- schedule: {settings['schedule']}; metric: {settings['metric']}; fitted cells: "
-        + (f"θ_i, θ_o ≤ {settings['max_theta']:g}°" if settings.get("max_theta") else "all valid")
+        f"- schedule: {settings['schedule']}; metric: {settings['metric']}; apparatus factor: "
+        f"{'on' if apparatus else 'off'}; fitted cells: "
+        + (f"θ_i, θ_o ≤ {max_theta:g}°" if max_theta else "all valid")
         + f"; materials: {len(rows)}",
         f"- machine: {platform.machine()}, {platform.system()}; Python {v['python']}, "
         f"jax {v['jax']}, optimistix {v['optimistix']}",
-        f"- wall time: {settings['wall']:.0f} s",
+        f"- wall time of this run: {settings.get('wall', math.nan):.0f} s",
+        "",
+        "## Notes",
+        "",
+        "Notes are added by hand after a run; rerunning the command replaces this file.",
         "",
     ]
     return write_text_atomic(path, "\n".join(lines))
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def _materials(
+    folder, with_nbrdf: bool, tmp: Path, nbrdf_npz=None, *, names=None, limit=None, log=print
+):
+    """``[(name, source, path)]``: the folder's ``.binary`` files, then the Neural-BRDF stand-ins
+    (only those selected by ``names`` and ``limit`` are rendered, into ``tmp``).
+
+    Raises:
+        ValueError: a name in ``names`` that neither source has.
+    """
+    items: list[tuple[str, str, Path | None]] = []
+    if folder:
+        items += [(p.stem, "MERL", p) for p in sorted(Path(folder).glob("*.binary"))]
+    if with_nbrdf:
+        from fit.nbrdf import load_weights
+
+        items += [(name, "Neural-BRDF", None) for name in load_weights(nbrdf_npz)]
+    if names:
+        unknown = sorted(set(names) - {name for name, _, _ in items})
+        if unknown:
+            raise ValueError(f"unknown material(s): {', '.join(unknown)}")
+        items = [it for it in items if it[0] in set(names)]
+    if limit is not None:
+        items = items[:limit]
+    render = [name for name, source, path in items if path is None]
+    if render:
+        from fit.nbrdf import render_all
+
+        log(f"rendering {len(render)} Neural-BRDF stand-in(s) to a temporary folder")
+        paths = {p.stem: p for p in render_all(tmp, materials=render, npz_path=nbrdf_npz)}
+        items = [(name, source, path or paths[name]) for name, source, path in items]
+    return items
 
 
 def main(argv=None) -> int:
@@ -219,16 +645,42 @@ def main(argv=None) -> int:
     ap.add_argument("--folder", help="folder of MERL .binary files")
     ap.add_argument("--no-nbrdf", action="store_true", help="skip the Neural-BRDF stand-ins")
     ap.add_argument("--nbrdf-npz", help="Neural-BRDF weights (default: shared/data/merl_nbrdf)")
-    ap.add_argument("--preview", action="store_true", help="preview schedule (faster)")
+    ap.add_argument("--materials", nargs="+", metavar="NAME", help="fit only these materials")
     ap.add_argument("--limit", type=int, help="fit only the first N materials")
+    ap.add_argument("--preview", action="store_true", help="preview schedule (faster)")
     ap.add_argument("--metric", choices=("log", "linear"), default="log")
     ap.add_argument(
         "--max-theta",
         type=float,
         help="fit only cells with θ_i, θ_o ≤ this angle (degrees); RMSE still on all valid cells",
     )
+    ap.add_argument(
+        "--no-apparatus",
+        action="store_true",
+        help="fit every model without MERL's apparatus factor (default: on for every model)",
+    )
     ap.add_argument("--records", help="folder to keep every fit's params.json")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse the fits in --records made with the same settings (continue a campaign)",
+    )
+    ap.add_argument("--gallery", default="fit/gallery", help="folder of the gallery's pictures")
+    ap.add_argument(
+        "--gallery-md", help="gallery index to write (default: GALLERY.md beside --gallery)"
+    )
+    ap.add_argument("--no-gallery", action="store_true", help="draw no gallery")
     args = ap.parse_args(argv)
+    if args.resume and not args.records:
+        ap.error("--resume needs --records DIR")
+    if args.limit is not None and args.limit < 1:
+        ap.error("--limit must be at least 1")
+    apparatus = not args.no_apparatus
+    try:
+        _baseline_config("ggx", apparatus)
+    except RuntimeError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
 
     import jax
 
@@ -240,47 +692,87 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     schedule = "preview" if args.preview else "default"
     records = Path(args.records) if args.records else None
-    rows = []
+    gallery = None if args.no_gallery else Path(args.gallery)
+    gallery_md = None
+    if gallery is not None:
+        gallery_md = Path(args.gallery_md) if args.gallery_md else gallery.parent / "GALLERY.md"
+    settings = {
+        "schedule": schedule,
+        "metric": args.metric,
+        "max_theta": args.max_theta,
+        "apparatus": apparatus,
+    }
+    rows: list[Row] = []
+    pictures: dict[str, Path] = {}
     with tempfile.TemporaryDirectory(prefix="twoscale-nbrdf-") as tmp:
         try:
-            items = _materials(args.folder, not args.no_nbrdf, Path(tmp), args.nbrdf_npz, log)
+            items = _materials(
+                args.folder,
+                not args.no_nbrdf,
+                Path(tmp),
+                args.nbrdf_npz,
+                names=args.materials,
+                limit=args.limit,
+                log=log,
+            )
         except (OSError, ValueError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
-        if args.limit is not None:
-            items = items[: args.limit]
         if not items:
             print("error: no material to fit (empty folder and --no-nbrdf)", file=sys.stderr)
             return 2
         for i, (name, source, path) in enumerate(items):
             log(f"[{i + 1}/{len(items)}] {name} ({source})")
             try:
-                row = fit_material(
+                row, results, data = fit_material(
                     path,
                     metric=args.metric,
                     schedule=schedule,
+                    apparatus=apparatus,
+                    source=source,
                     log=log,
                     records=records,
+                    resume=args.resume,
                     max_theta_deg=args.max_theta,
                 )
             except Exception as err:  # noqa: BLE001 - one failed material must not stop the campaign
                 row = Row(name=name, source=source, error=f"{type(err).__name__}: {err}")
+                results, data = {}, None
                 log(f"  failed: {row.error}")
-            row.source = source
             rows.append(row)
-            # Rewrite the report after every material: a long campaign can be watched and resumed.
-            write_report(
-                args.out,
-                rows,
-                {
-                    "schedule": schedule,
-                    "metric": args.metric,
-                    "max_theta": args.max_theta,
-                    "wall": time.perf_counter() - t0,
-                },
-            )
-    log(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
+            if gallery is not None and "full" in results:
+                picture = _draw_picture(gallery, row, results, data, log)
+                if picture is not None:
+                    pictures[name] = picture
+            # Rewrite the report after every material: a long campaign can be watched.
+            write_report(args.out, rows, {**settings, "wall": time.perf_counter() - t0})
+            if gallery_md is not None:
+                from fit.gallery import write_index
+
+                write_index(gallery_md, rows, pictures, LABELS)
+    log(f"wrote {args.out}" + (f" and {gallery_md}" if gallery_md else ""))
+    log(f"total {time.perf_counter() - t0:.0f} s")
     return 0
+
+
+def _draw_picture(gallery: Path, row: Row, results: dict, data, log) -> Path | None:
+    """The material's gallery tile (two-scale and GGX + Lambert); kept when all four fits came
+    from records and the picture exists. A drawing error is logged, not raised."""
+    from fit.gallery import draw_tile
+
+    path = gallery / f"{row.name}.png"
+    if path.exists() and set(row.resumed) >= set(MODELS):
+        return path
+    shown = {LABELS[k]: results[k] for k in ("full", "ggx") if k in results}
+    title = f"{row.name}: two-scale ({row.material}) log RMSE {row.rmse_log['full']:.3f}"
+    if "ggx" in row.rmse_log:
+        title += f"; GGX + Lambert {row.rmse_log['ggx']:.3f}"
+    try:
+        gallery.mkdir(parents=True, exist_ok=True)
+        return draw_tile(data, shown, path, title=title)
+    except Exception as err:  # noqa: BLE001 - a picture must not stop the campaign
+        log(f"  gallery picture failed: {type(err).__name__}: {err}")
+        return None
 
 
 if __name__ == "__main__":

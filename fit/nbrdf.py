@@ -1,4 +1,4 @@
-"""Render the Neural-BRDF stand-ins of 12 MERL materials to MERL-format tables.
+"""Render the Neural-BRDF stand-ins of MERL materials (60 of them) to MERL-format tables.
 
 Source: ``shared/data/merl_nbrdf`` (Sztrajman et al., "Neural BRDF Representation and Importance
 Sampling", CGF 40(6) 2021; MIT). Each material is a 6-21-21-3 MLP evaluated exactly as in the
@@ -10,10 +10,12 @@ paper's code (and the data README):
     rgb = exp(h2 W3 + b3) − 1      (BRDF in 1/sr, MERL's channel scales already applied)
 
 on the MERL grid at the bins' lower edges (θh = (i/90)² π/2, θd = j π/180, φd = k π/180, as in
-training), and 0 where cos θ_i or cos θ_o ≤ 0. These are approximations of the measurements
+training). Cells with cos θ_i or cos θ_o ≤ ``min_cos`` (default 0.01, as in the held-out checks of
+the fitting issue; real MERL files also leave the last grazing cells unmeasured) are written as
+invalid (−1). These are approximations of the measurements
 (errors of several %), not the measurements: use them to check that fits converge and generalise.
 
-    python -m fit.nbrdf --out DIR [--materials nickel chrome ...]
+    python -m fit.nbrdf --out DIR [--materials nickel chrome ...] [--min-cos 0.01]
 
 writes ``DIR/<material>.binary``. Never commit the rendered files (they derive from shared data).
 """
@@ -27,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-MATERIALS = (
+#: The first 12 (``nbrdf_merl_subset.npz``); the 60 of ``nbrdf_merl_60.npz`` include them.
+SUBSET = (
     "nickel",
     "gray-plastic",
     "yellow-matte-plastic",
@@ -43,11 +46,17 @@ MATERIALS = (
 )
 
 
-def default_npz() -> Path:
-    """``shared/data/merl_nbrdf/nbrdf_merl_subset.npz`` beside the repository (or $TWOSCALE_SHARED)."""
+MATERIALS = SUBSET  # kept for callers of the 12-material set
+
+#: Cells with cos θ_i or cos θ_o at or below this are written invalid (see the module doc).
+MIN_COS = 0.01
+
+
+def default_npz(name: str = "nbrdf_merl_60.npz") -> Path:
+    """``shared/data/merl_nbrdf/<name>`` beside the repository (or under $TWOSCALE_SHARED)."""
     shared = os.environ.get("TWOSCALE_SHARED")
     root = Path(shared) if shared else Path(__file__).resolve().parents[2] / "shared"
-    return root / "data" / "merl_nbrdf" / "nbrdf_merl_subset.npz"
+    return root / "data" / "merl_nbrdf" / name
 
 
 def load_weights(npz_path=None) -> dict[str, dict[str, np.ndarray]]:
@@ -92,22 +101,26 @@ def mlp_brdf(weights: dict[str, np.ndarray], theta_h, theta_d, phi_d) -> np.ndar
     return np.where(above[..., None], np.maximum(rgb, 0.0), 0.0)
 
 
-def render(weights: dict[str, np.ndarray], name: str = "nbrdf"):
-    """A :class:`twoscale.merl.MerlData` of the MLP on the MERL grid (lower-edge angles)."""
+def render(weights: dict[str, np.ndarray], name: str = "nbrdf", min_cos: float = MIN_COS):
+    """A :class:`twoscale.merl.MerlData` of the MLP on the MERL grid (lower-edge angles); cells
+    with ``cos θ_i`` or ``cos θ_o ≤ min_cos`` are invalid."""
     from twoscale import merl
 
     th, td, pd = merl.grid_angles("lower")
     values = mlp_brdf(weights, th, td, pd)
-    valid = merl.valid_geometric("lower")
+    a = np.cos(th) * np.cos(td)
+    b = np.sin(th) * np.sin(td) * np.cos(pd)
+    valid = (a - b > min_cos) & (a + b > min_cos)
     return merl.MerlData(values=np.where(valid[..., None], values, 0.0), valid=valid, name=name)
 
 
-def render_all(out_dir, materials=None, npz_path=None) -> list[Path]:
-    """Write ``out_dir/<material>.binary`` for each material; returns the paths."""
+def render_all(out_dir, materials=None, npz_path=None, min_cos: float = MIN_COS) -> list[Path]:
+    """Write ``out_dir/<material>.binary`` for each material (default: every one in the weights
+    file, in its order); returns the paths."""
     from twoscale import merl
 
     weights = load_weights(npz_path)
-    names = list(materials) if materials else [m for m in MATERIALS if m in weights]
+    names = list(materials) if materials else list(weights)
     unknown = [m for m in names if m not in weights]
     if unknown:
         raise ValueError(f"unknown Neural-BRDF material(s) {unknown}; have {sorted(weights)}")
@@ -115,7 +128,7 @@ def render_all(out_dir, materials=None, npz_path=None) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for name in names:
-        data = render(weights[name], name)
+        data = render(weights[name], name, min_cos)
         paths.append(merl.write(out_dir / f"{name}.binary", data))
     return paths
 
@@ -123,11 +136,14 @@ def render_all(out_dir, materials=None, npz_path=None) -> list[Path]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fit.nbrdf", description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, help="output folder for <material>.binary")
-    ap.add_argument("--materials", nargs="*", help=f"subset of {', '.join(MATERIALS)}")
-    ap.add_argument("--npz", help="weights file (default: shared/data/merl_nbrdf/...)")
+    ap.add_argument("--materials", nargs="*", help="materials to render (default: all)")
+    ap.add_argument(
+        "--npz", help="weights file (default: shared/data/merl_nbrdf/nbrdf_merl_60.npz)"
+    )
+    ap.add_argument("--min-cos", type=float, default=MIN_COS, help="invalid at or below this cos θ")
     args = ap.parse_args(argv)
     try:
-        paths = render_all(args.out, args.materials, args.npz)
+        paths = render_all(args.out, args.materials, args.npz, args.min_cos)
     except (OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

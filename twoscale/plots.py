@@ -3,7 +3,8 @@
 - :func:`plot_slices`: measured vs fitted ``ρ(θ_h)`` at a few ``θ_d`` (``φ_d = 90°``), log scale;
 - :func:`plot_lobes`: the lobes in the plane of incidence for a few ``θ_i`` (measured dots);
 - :func:`plot_spheres`: a sphere under a point light, measured (MERL table lookup, nearest bin)
-  and fitted (the model), side by side with the same exposure.
+  and fitted (the model), side by side with the same exposure;
+- :func:`plot_gallery_tile`: one small picture (slices and spheres) comparing several models.
 
 Each takes a ``model`` callable ``model(wi, wo) -> (..., 3)`` (NumPy in, NumPy out); build one
 with :func:`model_function`.
@@ -11,6 +12,7 @@ with :func:`model_function`.
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
@@ -370,3 +372,102 @@ def plot_recovery(params, truth, path, *, std_errors=None, title=""):
     for ax in (ax1, ax2):
         ax.grid(True, axis="x", alpha=0.3)
     return _save(fig, path, title)
+
+
+def plot_gallery_tile(
+    data,
+    models: dict,
+    path,
+    *,
+    theta_d_deg=(5, 30, 60),
+    phi_d_deg: int = 90,
+    sphere_size: int = 96,
+    light_deg: float = 30.0,
+    title: str = "",
+    dpi: int = 65,
+):
+    """One small picture of a fit for a gallery: ``θ_h`` slices above, spheres below.
+
+    Top row: measured ``ρ(θ_h)`` (dots) and each model (lines: solid for the first, dashed,
+    dotted, … for the next) at a few ``θ_d`` (``φ_d = phi_d_deg``), log scale, RGB channels, the
+    measured range setting the scale. Bottom row: the measured sphere (MERL lookup) and one sphere
+    per model under the same point light and exposure (99.5th percentile of the measured image).
+
+    Args:
+        data: a :class:`twoscale.merl.MerlData`.
+        models: ``{label: model(wi, wo) -> (..., 3)}`` in drawing order (:func:`model_function`).
+        dpi: resolution of the PNG (the default keeps a tile near 40-60 kB).
+    """
+    from matplotlib.lines import Line2D
+    from PIL import Image
+
+    from twoscale import merl
+
+    labels = list(models)
+    n_col = max(len(theta_d_deg), 1 + len(labels))
+    fig, axes = _subplots(2, n_col, figsize=(2.4 * n_col, 4.8), squeeze=False)
+    styles = ("-", "--", ":", "-.")
+    ih = np.arange(merl.N_THETA_H)
+    kp = int(round(phi_d_deg))
+    fine_h = np.linspace(0.0, 89.0 / 90.0, 200) ** 2 * (np.pi / 2)  # the grid's θ_h range
+    y_lo, y_hi = math.inf, 0.0
+    for ax, td in zip(axes[0], theta_d_deg, strict=False):
+        jd = int(round(td))
+        th, tdr, pdr = merl.bin_to_angles(ih, np.full_like(ih, jd), np.full_like(ih, kp))
+        wi, wo = _dirs(th, tdr, pdr)
+        meas = np.asarray(data.values)[ih, jd, kp]
+        ok = np.asarray(data.valid)[ih, jd, kp] & (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        fwi, fwo = _dirs(fine_h, np.full_like(fine_h, tdr[0]), np.full_like(fine_h, pdr[0]))
+        above = (fwi[:, 2] > 0) & (fwo[:, 2] > 0)
+        preds = [model(fwi, fwo) for model in models.values()]
+        for c, colour in enumerate(_CHANNEL_COLOURS):
+            ax.plot(np.degrees(th[ok]), np.maximum(meas[ok, c], 1e-6), ".", ms=2, color=colour)
+            for pred, style in zip(preds, styles, strict=False):
+                y = np.maximum(pred[above, c], 1e-6)
+                ax.plot(np.degrees(fine_h[above]), y, style, lw=1, color=colour)
+        if ok.any():
+            y_lo = min(y_lo, max(float(meas[ok].min()), 1e-6))
+            y_hi = max(y_hi, float(meas[ok].max()))
+        ax.set_yscale("log")
+        ax.set_title(f"θ_d = {td}°, φ_d = {phi_d_deg}°", fontsize=8)
+        ax.set_xlabel("θ_h (deg)", fontsize=8, labelpad=1)
+        ax.tick_params(labelsize=7, pad=1)
+        ax.grid(True, which="both", alpha=0.2)
+    for ax in axes[0, len(theta_d_deg) :]:
+        ax.axis("off")
+    if y_hi > 0:  # the measured range sets the scale (a model may soar at grazing angles)
+        for ax in axes[0, : len(theta_d_deg)]:
+            ax.set_ylim(y_lo / 3, y_hi * 3)
+    axes[0, 0].set_ylabel("ρ (1/sr)", fontsize=8)
+    handles = [Line2D([], [], ls="", marker=".", color="k", label="measured")] + [
+        Line2D([], [], ls=style, color="k", lw=1, label=label)
+        for label, style in zip(labels, styles, strict=False)
+    ]
+    axes[0, 0].legend(handles=handles, fontsize=7, loc="upper right")
+
+    # Without a model, a zero one still gives the measured sphere.
+    sphere_models = list(models.values()) or [lambda wi, wo: np.zeros(np.shape(wi))]
+    renders = [
+        render_spheres(data, m, size=sphere_size, light_deg=light_deg) for m in sphere_models
+    ]
+    meas_img, _, mask = renders[0]
+    images = [meas_img] + [fit_img for _, fit_img, _ in renders[: len(labels)]]
+    ref = meas_img[mask].max(axis=-1)
+    level = np.percentile(ref, 99.5) if ref.size else 1.0
+    scale = 1.0 / level if level > 0 else 1.0
+    names = ["measured"] + labels
+    for ax, img, name in zip(axes[1], images, names, strict=False):
+        ax.imshow(_tonemap(img, scale), interpolation="nearest")
+        ax.set_title(name, fontsize=9)
+    for ax in axes[1]:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    # Opaque RGB (no alpha channel), optimised: about 15 % smaller than matplotlib's RGBA PNG.
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    buf.seek(0)
+    with Image.open(buf) as img:
+        img.convert("RGB").save(path, format="PNG", optimize=True)
+    return Path(path)
