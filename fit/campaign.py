@@ -140,6 +140,8 @@ class Row:
         rmse_log, rmse_lin: RMSE on all valid cells; ``rmse_log_80``, ``rmse_lin_80`` on the valid
             cells with ``θ_i, θ_o ≤`` :data:`THETA_CUT` (``n_cells_80`` of them).
         resumed: models whose result was reused from a record (``--resume``).
+        cli_exit: with ``--cli``, the exit status of ``python -m twoscale.fit`` on the file (the
+            full model's time is then the CLI's end to end: read, fit, errors, pictures).
     """
 
     name: str
@@ -156,6 +158,7 @@ class Row:
     warnings: dict = dataclasses.field(default_factory=dict)
     resumed: list = dataclasses.field(default_factory=list)
     error: str = ""
+    cli_exit: int | None = None  # exit status of the CLI run of the full model (``--cli``)
 
     def __post_init__(self):
         if not self.expected:
@@ -274,8 +277,13 @@ def fit_material(
     records: Path | None = None,
     resume: bool = False,
     max_theta_deg: float | None = None,
+    cli: bool = False,
 ):
     """Fit the four models to one file.
+
+    With ``cli``, the full model is fitted as a user would: ``python -m twoscale.fit`` in a
+    subprocess with the default options (the same schedule, metric, angle cut and apparatus
+    switch), its ``params.json`` read back, its exit status and end-to-end time recorded.
 
     Returns ``(row, results, data)``: the :class:`Row`, ``{model key: FitResult}`` and the
     :class:`twoscale.merl.MerlData`. With ``records``, every result is saved as
@@ -314,14 +322,17 @@ def fit_material(
         else:
             t = time.perf_counter()
             kw = {} if material is None else {"material": material}
-            res = fit(
-                data,
-                config=config,
-                metric=metric,
-                schedule=schedule,
-                max_theta_deg=max_theta_deg,
-                **kw,
-            )
+            if cli and key == "full":
+                res = _fit_with_cli(path, records, data.name, row, settings, log)
+            else:
+                res = fit(
+                    data,
+                    config=config,
+                    metric=metric,
+                    schedule=schedule,
+                    max_theta_deg=max_theta_deg,
+                    **kw,
+                )
             row.seconds[key] = time.perf_counter() - t
             rmse_80 = rmse_below(res, cells_80)
             row.warnings[key] = [str(w) for w in getattr(res, "warnings", None) or []]
@@ -347,6 +358,40 @@ def fit_material(
     for key in BASELINES:
         run(key, _baseline_config(key, apparatus))
     return row, results, data
+
+
+def _fit_with_cli(path, records, name: str, row: Row, settings: dict, log):
+    """Run ``python -m twoscale.fit`` on ``path`` (see :func:`fit_material`); returns the result."""
+    import os
+    import subprocess
+    import tempfile
+
+    from twoscale.fit import load_result
+
+    keep = records is not None
+    out_parent = Path(records) / name if keep else Path(tempfile.mkdtemp(prefix="twoscale-cli-"))
+    out = out_parent / "cli"
+    args = [sys.executable, "-m", "twoscale.fit", str(path), "--out", str(out), "--quiet"]
+    args += ["--metric", settings["metric"]]
+    if settings["schedule"] == "preview":
+        args.append("--preview")
+    if not settings["apparatus"]:
+        args.append("--no-apparatus")
+    if settings["max_theta"] is not None:
+        args += ["--max-theta", str(settings["max_theta"])]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.run(args, capture_output=True, text=True, env=env)
+    row.cli_exit = proc.returncode
+    for line in proc.stderr.splitlines():
+        log(f"    cli: {line}")
+    if proc.returncode != 0:
+        raise RuntimeError(f"the CLI exited {proc.returncode}: {proc.stderr.strip()[-300:]}")
+    res = load_result(out / "params.json")
+    if not keep:
+        import shutil
+
+        shutil.rmtree(out_parent, ignore_errors=True)
+    return res
 
 
 # --------------------------------------------------------------------------------------------
@@ -445,13 +490,25 @@ def summary_sentences(rows: list[Row]) -> list[str]:
         + "."
     )
 
+    cli_runs = [r for r in rows if r.cli_exit is not None]
+    if cli_runs:
+        bad = [f"{r.name} (exit {r.cli_exit})" for r in cli_runs if r.cli_exit != 0]
+        lines.append(
+            f"- Default CLI (`python -m twoscale.fit FILE`): {len(cli_runs) - len(bad)} of "
+            f"{len(cli_runs)} runs exited 0" + (f"; not: {_names(bad)}." if bad else ".")
+        )
     times = [(r.seconds.get("full", math.nan), r.name) for r in ok]
     times = [(t, name) for t, name in times if math.isfinite(t)]
     if times:
         t_max, name_max = max(times)
         total = sum(t for r in ok for t in r.seconds.values() if math.isfinite(t))
+        what = (
+            "end to end through the CLI (read, fit, errors, pictures)"
+            if any(r.cli_exit is not None for r in ok)
+            else "of the two-scale fit"
+        )
         lines.append(
-            f"- Time of the two-scale fit: median {_median([t for t, _ in times]):.0f} s, "
+            f"- Time {what}: median {_median([t for t, _ in times]):.0f} s, "
             f"max {t_max:.0f} s ({name_max}); all fits of these materials: {total:.0f} s."
         )
     resumed = [r.name for r in ok if r.resumed]
@@ -659,6 +716,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="fit every model without MERL's apparatus factor (default: on for every model)",
     )
+    ap.add_argument(
+        "--cli",
+        action="store_true",
+        help="fit the full model through `python -m twoscale.fit` (exit status, end-to-end time)",
+    )
     ap.add_argument("--records", help="folder to keep every fit's params.json")
     ap.add_argument(
         "--resume",
@@ -734,6 +796,7 @@ def main(argv=None) -> int:
                     records=records,
                     resume=args.resume,
                     max_theta_deg=args.max_theta,
+                    cli=args.cli,
                 )
             except Exception as err:  # noqa: BLE001 - one failed material must not stop the campaign
                 row = Row(name=name, source=source, error=f"{type(err).__name__}: {err}")
