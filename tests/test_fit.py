@@ -353,3 +353,18 @@ def test_type_choice_on_synthetic_materials(material):
     )
     assert res.type_selection["chosen"] == material, res.type_selection
     assert res.material == material
+
+
+def test_no_progress_raises(ct_noisy, monkeypatch):
+    """Every solver step rejected from every start: a FitError (the CLI's exit 3), not a result."""
+    import twoscale.fit.driver as driver
+
+    real = driver._solve
+
+    def stuck(problem, y0, *args):
+        _, res, _, k, _, rr0, _, jtj = real(problem, y0, *args)
+        return y0, res, False, k, 0, rr0, rr0, jtj  # y never moves, no accepted step
+
+    monkeypatch.setattr(driver, "_solve", stuck)
+    with pytest.raises(driver.FitError, match="progress"):
+        fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 6)])

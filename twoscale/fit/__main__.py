@@ -272,8 +272,6 @@ def _run(args, log) -> int:
         raise FitFailed(str(err)) from None
     except ValueError as err:
         raise InputError(str(err)) from None
-    if result.steps == 0 and not result.converged:
-        raise FitFailed(f"the fit made no progress from any start ({result.status})")
     names = _write_outputs(out, result, data, not args.no_plots, log)
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)

@@ -249,6 +249,7 @@ class _Candidate:
     jtj: np.ndarray | None = None  # JᵀJ at y on the last stage's cells
     m: int = 0  # residuals in that stage
     nested: bool = False  # the nested start: carried through every stage (see fit(nested=...))
+    moves: int = 0  # accepted solver steps so far
 
 
 #: Two solutions closer than this many standard errors are the same minimum (see :func:`fit`).
@@ -565,7 +566,8 @@ class _SolverSettings:
 def _refine(cand: _Candidate, g: _Group, stage: Stage, data, n_active: int, m: int, opts):
     """Run the solver on one candidate for one stage, in rounds (see :class:`Stage`).
 
-    Returns ``(y, rr, jtj, steps, converged, status)``.
+    Returns ``(y, rr, jtj, steps, converged, status)``; ``cand.moves`` counts the accepted
+    solver steps (0 after a stage: no step from the start lowered the cost).
     """
     problem = Problem(g.adapter, g.layout, opts.metric)
     n = g.layout.size
@@ -604,6 +606,7 @@ def _refine(cand: _Candidate, g: _Group, stage: Stage, data, n_active: int, m: i
         rr0, rr_new = float(rr0), float(rr_new)
         msg = _result_message(res)
         steps += int(k)
+        cand.moves += int(moves)
         if not (math.isfinite(rr_new) and np.all(np.isfinite(np.asarray(y_new)))):
             return y, rr, jtj, steps, False, msg or "non-finite values"
         fell = (rr0 - rr_new) / rr0 if math.isfinite(rr0) and rr0 > 0 else math.inf
@@ -709,6 +712,8 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose_type
         stage_log.append({**stage.to_dict(), "n_cells_used": n_cells, "starts": entries})
         if not any(math.isfinite(c.cost) for c in cands):
             raise FitError("no start gave a finite fit (non-finite model values or residuals)")
+        if si == 0 and not any(c.moves > 0 or c.success for c in cands):
+            raise FitError("no start made any progress (every solver step was rejected)")
         kept, duplicates = _keep_best(cands, groups, stage, si >= len(stages) - 2)
         for e in entries:
             if e["start"] in duplicates:
