@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twoscale.fit.driver import STALL_RTOL
+
 MODELS = ("full", "specular", "ggx", "beckmann")
 LABELS = {
     "full": "two-scale",
@@ -319,6 +321,8 @@ def fit_material(
             rmse_80 = {"log": _num(got.get("log")), "linear": _num(got.get("linear"))}
             row.warnings[key] = list(entry.get("warnings", []))
             row.resumed.append(key)
+            if cli and key == "full" and (records / data.name / "cli" / "params.json").is_file():
+                row.cli_exit = 0  # the CLI writes its output only when it exits 0
         else:
             t = time.perf_counter()
             kw = {} if material is None else {"material": material}
@@ -447,15 +451,29 @@ def summary_sentences(rows: list[Row]) -> list[str]:
     lines.append(compare(lambda r: r.rmse_log, "all valid cells"))
     lines.append(compare(lambda r: r.rmse_log_80, f"cells with θ_i, θ_o ≤ {THETA_CUT:g}°"))
 
-    worse = [
-        f"{r.name} ({r.rmse_log['full']:.5g} vs {r.rmse_log['specular']:.5g}, "
-        f"{100 * (r.rmse_log['full'] / r.rmse_log['specular'] - 1):+.2g} %)"
-        for r in ok
-        if r.rmse_log["full"] > r.rmse_log["specular"]
-    ]
+    def vs_special(r):
+        return r.rmse_log["full"] / r.rmse_log["specular"] - 1
+
+    def fmt(r):
+        return (
+            f"{r.name} ({r.rmse_log['full']:.5g} vs {r.rmse_log['specular']:.5g}, "
+            f"{100 * vs_special(r):+.2g} %)"
+        )
+
+    # The fits stop when a round of solver steps lowers the RMS by less than STALL_RTOL: two
+    # fits of the same minimum agree to about that, so smaller differences are reported apart.
+    worse = [fmt(r) for r in ok if vs_special(r) > STALL_RTOL]
+    level = [fmt(r) for r in ok if 0 < vs_special(r) <= STALL_RTOL]
     lines.append(
-        "- Two-scale log RMSE above its own special case EPD + diffuse (all valid cells): "
+        "- Two-scale log RMSE above its own special case EPD + diffuse (all valid cells) by more "
+        f"than the fits' convergence tolerance ({STALL_RTOL:g} relative): "
         + (f"on {len(worse)} material(s): {', '.join(worse)}." if worse else "on no material.")
+        + (
+            f" Above it by less than that (the same minimum; the diffraction lobe brings "
+            f"nothing): {', '.join(level)}."
+            if level
+            else ""
+        )
     )
 
     ratios = []

@@ -182,7 +182,9 @@ def test_summary_names_every_exception(rows):
     assert "below the better baseline on 2 of 3 (not on: gray-plastic)" in text
     rel = np.median([(0.40 - 0.20) / 0.40, (0.50 - 0.60) / 0.50, (0.35 - 0.30) / 0.35]) * 100
     assert f"median {rel:.1f} %" in text
-    assert "diffuse (all valid cells): on 1 material(s): white-marble (0.3 vs 0.29, +3.4 %)" in text
+    assert (
+        "tolerance (0.0001 relative): on 1 material(s): white-marble (0.3 vs 0.29, +3.4 %)." in text
+    )
     assert "better baseline's (all valid cells): on 1: white-marble (3.0×)" in text
     assert "1 of 2 materials with an unambiguous expected type chosen correctly (50 %)" in text
     assert "wrong: gray-plastic (conductor, expected plastic)" in text
@@ -196,7 +198,12 @@ def test_summary_names_every_exception(rows):
 def test_summary_without_exceptions():
     text = "\n".join(campaign.summary_sentences([_row("chrome-steel", 0.1, 0.2, 0.3, 0.4)]))
     assert "below GGX + Lambert on 1 of 1 materials (not on: none)" in text
-    assert "EPD + diffuse (all valid cells): on no material." in text
+    assert "tolerance (0.0001 relative): on no material." in text
+    # A difference below the solvers' stopping tolerance is listed apart, as the same minimum.
+    row = _row("chrome-steel", 0.1, 0.2, 0.3, 0.4)
+    row.rmse_log["specular"] = 0.1 * (1 - 2e-6)
+    text = "\n".join(campaign.summary_sentences([row]))
+    assert "on no material. Above it by less than that" in text and "chrome-steel (0.1 vs" in text
     assert "better baseline's (all valid cells): on no material." in text
     assert "1 of 1 materials with an unambiguous expected type chosen correctly (100 %)" in text
     assert campaign.summary_sentences([Row("x", "y", error="E")]) == [
