@@ -28,6 +28,7 @@ from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
 from twoscale.model import apparatus_factor
+from twoscale.params import bounds_for
 
 __all__ = [
     "CookTorranceConfig",
@@ -38,8 +39,8 @@ __all__ = [
 
 #: Roughness range kept by the reparametrisation (log-scaled sigmoid).
 ALPHA_RANGE = (1e-3, 2.0)
-#: Upper bound of the apparatus exponent (as for the two-scale model's ``e``).
-E_MAX = 5.0
+#: Upper bound of the apparatus exponent: the two-scale model's (one range for both models).
+E_MAX = bounds_for("e", None).hi
 _DISTRIBUTIONS = ("ggx", "beckmann")
 
 

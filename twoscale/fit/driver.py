@@ -771,8 +771,7 @@ def _fit_warnings(group: _Group, cand: _Candidate, params, cov_info: dict) -> li
 
 def _errors_within(pred: np.ndarray, cells, max_theta_deg: float = 80.0) -> dict | None:
     """:func:`_errors` on the cells with ``θ_i, θ_o ≤ max_theta_deg`` (None if there is none)."""
-    cmin = math.cos(math.radians(max_theta_deg)) - 1e-12
-    ok = (cells.wi[:, 2] >= cmin) & (cells.wo[:, 2] >= cmin)
+    ok = cells.within(max_theta_deg)
     if not ok.any():
         return None
     e = _errors(pred[ok], cells.take(np.flatnonzero(ok)))

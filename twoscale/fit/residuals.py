@@ -98,6 +98,11 @@ class Cells:
     def take(self, idx) -> Cells:
         return Cells(self.wi[idx], self.wo[idx], self.rho[idx], self.index[idx])
 
+    def within(self, max_theta_deg: float) -> np.ndarray:
+        """Mask of the cells with ``θ_i, θ_o ≤ max_theta_deg`` (1e-12 slack on the cosines)."""
+        cmin = math.cos(math.radians(max_theta_deg)) - 1e-12
+        return (self.wi[:, 2] >= cmin) & (self.wo[:, 2] >= cmin)
+
 
 @dataclasses.dataclass(frozen=True)
 class CellSelection:
@@ -138,8 +143,7 @@ def select_cells(data, *, max_theta_deg: float | None = None, convention: str = 
     cells = Cells(wi[index], wo[index], rho[index], index)
     fit_cells = cells
     if max_theta_deg is not None:
-        cmin = math.cos(math.radians(max_theta_deg))
-        ok = (cells.wi[:, 2] >= cmin - 1e-12) & (cells.wo[:, 2] >= cmin - 1e-12)
+        ok = cells.within(max_theta_deg)
         if not ok.any():
             raise ValueError(f"no valid cell with θ_i, θ_o ≤ {max_theta_deg}°")
         fit_cells = cells.take(np.flatnonzero(ok))
