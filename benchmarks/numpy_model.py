@@ -5,7 +5,7 @@ Independent of JAX: it reads the library's table *files* (their grid values and 
 :func:`twoscale.tables.load_table`) and evaluates the same C² cubic B-splines in NumPy: the
 coefficients are solved by :func:`twoscale.tables.bspline_coefficients` (pure NumPy), then sliced
 at the parameters and looked up per sample exactly as the library's hot path does (slice the
-parameter axes once, 1-D lookups per sample). The formulas are those of ``MODEL.md`` §2-3 as
+parameter axes once, 1-D lookups per sample). The formulas are those of ``docs/model.md`` §2-3 as
 composed in ``twoscale/model.py``, with the same guards; constants of the table coordinates come
 from the library modules (they are data, not code). Agreement with ``twoscale.brdf`` is tested in
 ``tests/test_benchmarks.py`` (≤ 1e-6 relative; measured ≈ 1e-13).

@@ -27,7 +27,7 @@ from twoscale.tables import DATA_DIR, Axis, save_table
 
 VERSION = 1
 
-# Physical domain (MODEL.md §3.5 / the task) and grid sizes (chosen by tables/check_renorm.py:
+# Physical domain (docs/model.md §3.5 / the task) and grid sizes (chosen by tables/check_renorm.py:
 # the smallest grid whose measured maximum relative error in R stays well under 1e-4).
 LOG10_B = (-2.0, 4.0)
 LOG10_C1 = (-2.0, math.log10(9.0))  # c − 1 ∈ [0.01, 9]

@@ -3,7 +3,7 @@
 Run from the repository root: ``python -m tables.check_renorm`` prints one row per check.
 :func:`accuracy_rows` returns the same rows (used by the tests and the report).
 
-The SciPy reference integrates MODEL.md §3.5 as written (radial form around the specular point,
+The SciPy reference integrates docs/model.md §3.5 as written (radial form around the specular point,
 arccos bracket), independently of the ψ form used by :mod:`twoscale.psd`, with the substitution
 ``r = 1 − s + s(1 − cos t)`` that removes the square-root kinks of the bracket at ``r = 1 ± s``
 and break points at multiples of the PSD width ``1/B``.
@@ -23,7 +23,7 @@ DOMAIN = {"s": (0.0, 1.0), "log10_B": (-2.0, 4.0), "log10_c_minus_1": (-2.0, mat
 
 
 def reference_quad(s: float, B: float, c: float, *, epsrel: float = 1e-13) -> float:
-    """R(s; B, c) by ``scipy.integrate.quad`` of MODEL.md §3.5 (float64, ~1e-12 relative)::
+    """R(s; B, c) by ``scipy.integrate.quad`` of docs/model.md §3.5 (float64, ~1e-12 relative)::
 
     R = 1 − (1 + B²(1−s)²)^{−(c−1)/2}
       + ∫_{1−s}^{1+s} [(π − arccos((1 − r² − s²)/(2rs)))/π] (c−1) B² r (1 + B²r²)^{−(c+1)/2} dr

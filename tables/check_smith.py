@@ -7,7 +7,7 @@ Relative error in Λ is counted where the exact ``Λ > 1e-12`` (below that Λ is
 ``G1 = 1`` to float64 and only its absolute size matters); the relative error in ``G1 = 1/(1+Λ)``
 is counted everywhere.
 
-The SciPy reference integrates the polar single integral (MODEL.md §3.3, derived in
+The SciPy reference integrates the polar single integral (docs/model.md §3.3, derived in
 :mod:`twoscale.shadowing`) in ρ, independently of the Gamma-variable form the exact path uses::
 
     Λ = (2 c_p/μ) ∫_μ^∞ exp(−ρ^{2p}) ρ (√(ρ² − μ²) − μ arccos(μ/ρ)) dρ,   μ = 1/a,  c_p = p/(πΓ(1/p)),
