@@ -144,7 +144,7 @@ def test_table_no_catastrophic_point():
     assert np.all(ratio < 2.0) and np.all(ratio >= 0.0)
 
 
-# Authors' table (MODEL.md §3.8): p, β, c, then (s, u') at u = 0.5, 1, 6, 30.
+# Authors' table (docs/model.md §3.8): p, β, c, then (s, u') at u = 0.5, 1, 6, 30.
 AUTHORS = [
     (5, 0.0029, 3.02, [(1.264, 0.731), (1.238, 1.138), (1.216, 6.025), (0.520, 15.93)]),
     (5, 0.0551, 3.02, [(1.037, 0.729), (1.007, 1.129), (0.724, 4.866), (0.106, 7.879)]),

@@ -199,7 +199,7 @@ def test_half_diff_round_trip():
     h /= np.linalg.norm(h, axis=-1, keepdims=True)
     np.testing.assert_allclose(h[:, 1], 0.0, atol=1e-14)
     np.testing.assert_allclose(h[:, 0], np.sin(th), atol=1e-13)
-    # cos θ_i, cos θ_o formulas of MODEL.md §7.
+    # cos θ_i, cos θ_o formulas of docs/model.md §7.3.
     a, b = np.cos(th) * np.cos(td), np.sin(th) * np.sin(td) * np.cos(pd)
     np.testing.assert_allclose(wi[:, 2], a - b, atol=1e-15)
     np.testing.assert_allclose(wo[:, 2], a + b, atol=1e-15)

@@ -162,7 +162,7 @@ def test_small_scale_parseval():
 
 
 def test_half_range_small_scale():
-    # MODEL.md's literal f_l = 2π∫_0^1: odd l appear, even l are halved.
+    # The literal f_l = 2π∫_0^1 of docs/model.md §3.8: odd l appear, even l are halved.
     full = np.asarray(small_scale_coefficients(*_f64(2.0, 3.0), l_max=8))
     half = np.asarray(small_scale_coefficients(*_f64(2.0, 3.0), l_max=8, half_range=True))
     np.testing.assert_allclose(half[::2], 0.5 * full[::2], rtol=1e-14)
@@ -273,7 +273,7 @@ def _fit_authors_form(vals, sin_t, c, u):
 
 
 def test_reproduces_authors_table():
-    # MODEL.md §3.8 rows, fitted like the authors (1000 points uniform in sin θ_h, LM).
+    # docs/model.md §3.8 rows, fitted like the authors (1000 points uniform in sin θ_h, LM).
     n = 1000
     sin_t = (np.arange(n) + 0.5) / n
     ct = np.sqrt(1.0 - sin_t**2)

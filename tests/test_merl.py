@@ -77,7 +77,7 @@ def test_directions_reproduce_angles(convention):
     th, td, pd = data.angles(convention)
     assert wi.shape == wo.shape == (*merl.SHAPE, 3) and wi.dtype == np.float64
     np.testing.assert_allclose(np.linalg.norm(wi, axis=-1), 1.0, atol=1e-15)
-    # cos θ_i, cos θ_o of MODEL.md §7.
+    # cos θ_i, cos θ_o of docs/model.md §7.3.
     a, b = np.cos(th) * np.cos(td), np.sin(th) * np.sin(td) * np.cos(pd)
     np.testing.assert_allclose(wi[..., 2], a - b, atol=1e-15)
     np.testing.assert_allclose(wo[..., 2], a + b, atol=1e-15)

@@ -1,5 +1,5 @@
 """K-correlation PSD and renormalisation R(s; B, c): values, limits, independent quadratures,
-table accuracy, gradients, dtype and transformation invariants [HP17 Eq. 16, 19; MODEL.md §3.4-3.5]."""
+table accuracy, gradients, dtype and transformation invariants [HP17 Eq. 16, 19; docs/model.md §3.4-3.5]."""
 
 import math
 
@@ -23,7 +23,7 @@ from twoscale.psd import (
 
 PATHS = ("exact", "tables")
 
-# MODEL.md §3.5 check values (s, B, c) → R, given to 6 decimals.
+# docs/model.md §3.5 check values (s, B, c) → R, given to 6 decimals.
 CHECK_VALUES = [
     ((0.0, 1.0, 2.0), 0.292893),
     ((0.5, 1.0, 2.0), 0.260553),
@@ -93,7 +93,7 @@ def test_normal_incidence_closed_form(path):
 
 
 def test_exact_path_matches_scipy_quadrature():
-    """Exact path vs scipy quad of MODEL.md §3.5 as written: ≤ 1e-8 relative (measured ~1e-12)."""
+    """Exact path vs scipy quad of docs/model.md §3.5 as written: ≤ 1e-8 relative (measured ~1e-12)."""
     pts = np.concatenate([random_points(40, 7), edge_points()[::4]])
     ref = np.array([reference_quad(*p) for p in pts])
     got = np.asarray(R_EXACT(pts[:, 0], pts[:, 1], pts[:, 2]))
@@ -142,7 +142,7 @@ def test_small_B_limit(path, s, c):
 
 @pytest.mark.parametrize("path", PATHS)
 def test_large_B_limit(path):
-    """R → 1 as B → ∞ for s < 1 (and → 1/2 at s = 1); R increases with B (MODEL.md §3.5)."""
+    """R → 1 as B → ∞ for s < 1 (and → 1/2 at s = 1); R increases with B (docs/model.md §3.5)."""
     for s in (0.0, 0.5, 0.9):
         assert float(R[path](s, 1e8, 5.0)) == pytest.approx(1.0, abs=1e-9)
     assert float(R[path](1.0, 1e8, 5.0)) == pytest.approx(0.5, abs=1e-4)

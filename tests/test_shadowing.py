@@ -1,6 +1,6 @@
 """Smith shadowing-masking of the EPD: check values, closed form, independent quadratures, table
 accuracy, joint G forms, gradients at the extremes, dtype and transformation invariants
-[HP17 Eq. 36-38; MODEL.md §3.3]."""
+[HP17 Eq. 36-38; docs/model.md §3.3]."""
 
 import dataclasses
 import math
@@ -40,7 +40,7 @@ def g1_a(a, p, path):
 # --- values ------------------------------------------------------------------------------------
 
 
-# MODEL.md §3.3: (a, p) → G1, to the digits given there.
+# docs/model.md §3.3: (a, p) → G1, to the digits given there.
 CHECK_VALUES = [
     ((0.5, 1.0), 0.99976, 5e-6),
     ((1.0, 1.0), 0.97549, 5e-6),
@@ -80,7 +80,7 @@ def test_limits():
 
 
 def _lambda_dblquad(a, p):
-    """Λ by ``scipy.integrate.dblquad`` of the definition as written (MODEL.md §3.3)::
+    """Λ by ``scipy.integrate.dblquad`` of the definition as written (docs/model.md §3.3)::
 
     Λ = ∫_{1/a}^{∞} (r a − 1) P2(r) dr,   P2(r) = p/(πΓ(1/p)) ∫_{−∞}^{∞} exp[−(r² + q²)^p] dq.
     """
@@ -192,7 +192,7 @@ def test_van_ginneken_wrapping():
     np.testing.assert_allclose(lam, 4.41 * phi / (4.41 * phi + 1.0), rtol=1e-15)
     for other in (2 * np.pi - phi, phi + 2 * np.pi, -phi, phi - 4 * np.pi):
         np.testing.assert_allclose(van_ginneken(other), lam, rtol=1e-12, atol=1e-14)
-    assert float(van_ginneken(np.pi)) == pytest.approx(0.933, abs=5e-4)  # MODEL.md §3.3
+    assert float(van_ginneken(np.pi)) == pytest.approx(0.933, abs=5e-4)  # docs/model.md §3.3
 
 
 @pytest.mark.parametrize("path", PATHS)
