@@ -45,7 +45,7 @@ def safe_pow(x, p):
     """``x**p`` for ``x >= 0`` and ``p > 0``, with finite gradients at ``x = 0``.
 
     ``x**p = exp(p log x)``: at ``x = 0`` the gradient in ``p`` is ``x**p log x = 0·(−inf)``,
-    which autodiff turns into NaN (MODEL.md §6 trap 1). The double where keeps it at 0.
+    which autodiff turns into NaN (docs/model.md §6 trap 1). The double where keeps it at 0.
     """
     pos = x > 0
     xs = jnp.where(pos, x, 1.0)

@@ -1,4 +1,4 @@
-"""Static model configuration: which material, which lobes, which approximations [MODEL.md §2-3].
+"""Static model configuration: which material, which lobes, which approximations [docs/model.md §2-3].
 
 A :class:`ModelConfig` is frozen and hashable, so it can be a static argument of ``jax.jit``; every
 field is checked when it is built and a bad value raises a ``ValueError`` naming the field.

@@ -9,7 +9,7 @@ above runs over every ``m`` of the upper hemisphere, including normals with ``h�
 when ``θ_h + θ_m > π/2``); there ``S`` takes its value at ``−μ``. In zonal harmonics this is
 ``S_l = 2π ∫_{−1}^{1} S Y_l dμ`` (Funk-Hecke needs the whole range: only even ``l`` survive), while
 ``D_l = 2π ∫_0^1 D Y_l dμ`` since ``D`` vanishes below the horizon. Truncating ``S`` to ``μ ≥ 0``
-(``∫_0^1``, as MODEL.md §3.8 writes ``f_l``) would compute a different integral, with
+(``∫_0^1``, as docs/model.md §3.8 writes ``f_l``) would compute a different integral, with
 ``χ(h·m > 0)`` inserted; it differs only where ``D`` has mass beyond ``π/2 − θ_h``.
 
 Two evaluation paths (``path=``):
@@ -92,7 +92,7 @@ def _log_ndf_tan(log_sin, log_cos, beta, p):
 
     ``(tan²θ/β²)^p = exp(2p (log sin − log cos − log β))``; the exponent is capped at 60 so
     that the stretched exponential underflows to 0 with a finite (zero) gradient instead of
-    ``exp(−inf)·inf`` (MODEL.md §6 traps 1-2).
+    ``exp(−inf)·inf`` (docs/model.md §6 traps 1-2).
     """
     expo = jnp.minimum(2.0 * p * (log_sin - log_cos - jnp.log(beta)), 60.0)
     return log_d0(beta, p) - jnp.exp(expo) - 4.0 * log_cos
@@ -375,7 +375,7 @@ def lobe_table(cos_theta_h, beta, p, c, u):
 def fit_params(beta, p, c, u, *, n_points: int = 1000, path: str = "exact"):
     """Parameters of the authors' 2-parameter form ``s [1 + (2u' sin θ_h)²]^{−(c+1)/2}`` (NumPy).
 
-    Fitted like the authors (MODEL.md §3.8): ``n_points`` uniform in ``sin θ_h ∈ [0, 1)``,
+    Fitted like the authors (docs/model.md §3.8): ``n_points`` uniform in ``sin θ_h ∈ [0, 1)``,
     least squares on the lobe values. For regression checks against the authors' table, not for
     hot paths (scalar arguments).
 

@@ -1,4 +1,4 @@
-"""Frame convention, half/difference angles and MERL coordinates ↔ directions [MODEL.md §1, §7].
+"""Frame convention, half/difference angles and MERL coordinates ↔ directions [docs/model.md §1, §7].
 
 Convention: ``i`` (``wi``) and ``o`` (``wo``) are unit vectors pointing *away* from the surface,
 shaped ``(..., 3)``; the normal is ``z``. The half vector is ``h = (i+o)/|i+o|``, ``θ_h = ∠(h, z)``
@@ -47,7 +47,7 @@ class Frame(NamedTuple):
         cos_d: ``cos θ_d = i·h = |i+o|/2``, in [0, 1].
         sin_d: ``sin θ_d = |i−o|/2``, in [0, 1].
         phi: ``|φ_i − φ_o|`` wrapped into [0, π] (the azimuth difference of van Ginneken's
-            correlated shadowing, MODEL.md §3.3); 0 where either azimuth is undefined (normal
+            correlated shadowing, docs/model.md §3.3); 0 where either azimuth is undefined (normal
             incidence or exit, ``|i_xy| ≤ ε`` or ``|o_xy| ≤ ε``).
     """
 
@@ -164,7 +164,7 @@ def spherical(theta, phi):
 
 
 def half_diff_from_dirs(wi, wo):
-    """Rusinkiewicz half/difference angles of a direction pair [MODEL.md §7].
+    """Rusinkiewicz half/difference angles of a direction pair [docs/model.md §7.3].
 
     ``θ_h = ∠(h, z)``, ``φ_h = atan2(h_y, h_x)``, ``d = R_y(−θ_h) R_z(−φ_h) i``,
     ``θ_d = ∠(d, z)``, ``φ_d = atan2(d_y, d_x)``. Angles are computed as ``atan2`` of a sine and
@@ -233,7 +233,7 @@ def _azimuth_difference(xp, wi, wo, e2):
 
 
 def dirs_from_half_diff(theta_h, theta_d, phi_d):
-    """Directions of the half/difference angles with ``φ_h = 0`` [MODEL.md §7].
+    """Directions of the half/difference angles with ``φ_h = 0`` [docs/model.md §7.3].
 
     ``d = (sin θ_d cos φ_d, sin θ_d sin φ_d, cos θ_d)``, ``h = (sin θ_h, 0, cos θ_h)``,
     ``i = R_y(θ_h) d``, ``o = 2(i·h)h − i``; hence

@@ -1,4 +1,4 @@
-"""Band-limited zonal-harmonic convolution ``(S*D)(θ_h)`` [HP17 Eq. 39-41; MODEL.md §3.8].
+"""Band-limited zonal-harmonic convolution ``(S*D)(θ_h)`` [HP17 Eq. 39-41; docs/model.md §3.8].
 
 Both factors of ``(S*D)(θ_h) = ∫_Ω S(h·m) D(m) dω_m`` are zonal: ``D`` about the normal ``n``,
 ``S`` about ``h``. With ``Y_l(μ) = √((2l+1)/4π) P_l(μ)`` and the projections
@@ -10,11 +10,11 @@ the Funk-Hecke theorem gives ``(S*D)_l = √(4π/(2l+1)) S_l D_l`` and
 
     ``(S*D)(θ_h) = Σ_{l<l_max} (S*D)_l Y_l(cos θ_h) = Σ_{l<l_max} S_l D_l P_l(cos θ_h)``.
 
-The sum is exact as ``l_max → ∞``; the authors used ``l < 100`` (MODEL.md §3.8). The range of
+The sum is exact as ``l_max → ∞``; the authors used ``l < 100`` (docs/model.md §3.8). The range of
 ``S`` is the whole ``[−1, 1]`` so that the series reproduces the integral over the upper
 hemisphere of ``m`` exactly as :func:`twoscale.convolution.lobe_exact` computes it (see
 ``tables/CONVOLUTION.md``, "Integration range of S"); ``half_range=True`` in
-:func:`small_scale_coefficients` gives MODEL.md's literal ``∫_0^1`` (it inserts ``χ(h·m > 0)``).
+:func:`small_scale_coefficients` gives the literal ``∫_0^1`` of docs/model.md §3.8 (it inserts ``χ(h·m > 0)``).
 
 Projections. Fixed composite Gauss-Legendre rules in ``θ ∈ [0, π/2]`` (``μ = cos θ``), so every
 coefficient is a smooth function of the parameters and differentiable. The panel edges are the
@@ -48,7 +48,7 @@ with finite gradients), not clamped, so that the truncation stays visible.
 
 Measured (``tables/HARMONICS.md``): coefficients to ≤ 3e-12 of ``D_0``/``S_0`` (2.9e-9 at
 β = 1, p = 0.2); where resolved, agreement with :func:`twoscale.convolution.lobe_exact` to
-1e-14 … 2e-9. At ``l_max = 100`` the fitted ``(s, u')`` of the authors' table (MODEL.md §3.8)
+1e-14 … 2e-9. At ``l_max = 100`` the fitted ``(s, u')`` of the authors' table (docs/model.md §3.8)
 are reproduced to ≤ 1.3 % in ``u'``, including its saturation (p = 5, β = 0.0029, u = 30:
 u' = 15.8 against the authors' 15.9 and the converged 29.5); ``s`` agrees to ≤ 1 % except a
 constant ~1.22 factor at p = 5, β = 0.0029 that the band limit does not explain.
@@ -142,7 +142,7 @@ def _y_norm(l_max: int, dtype):
 
 
 def legendre_coefficients(values, cos_theta, weights, *, l_max: int):
-    """Zonal projection ``f_l = 2π ∫ f(μ) Y_l(μ) dμ`` from a quadrature rule [MODEL.md §3.8].
+    """Zonal projection ``f_l = 2π ∫ f(μ) Y_l(μ) dμ`` from a quadrature rule [docs/model.md §3.8].
 
     Args:
         values: ``f`` at the nodes, (..., n).
@@ -189,7 +189,7 @@ def _ndf_coeffs_flat(beta, p, l_max):
     sin_t, cos_t = jnp.sin(theta), jnp.cos(theta)
     log_sin, log_cos = jnp.log(sin_t), jnp.log(cos_t)
     # (tan θ/β)^{2p}, capped at e^{60}: exp(−e^{60}) is 0 with a zero (not NaN) gradient, and
-    # 1/cos⁴θ is applied in logs (MODEL.md §6 traps 1-2).
+    # 1/cos⁴θ is applied in logs (docs/model.md §6 traps 1-2).
     expo = jnp.exp(jnp.minimum(2.0 * pp * (log_sin - log_cos - jnp.log(b)), 60.0))
     d = jnp.exp(log_d0(b, pp) - expo - 4.0 * log_cos)
     return legendre_coefficients(d, cos_t, w * sin_t, l_max=l_max)
@@ -255,13 +255,13 @@ def ndf_coefficients(beta, p, *, l_max: int = 100):
 def small_scale_coefficients(c, u, *, l_max: int = 100, half_range: bool = False):
     """Zonal coefficients ``S_l = 2π ∫_{−1}^1 S(μ) Y_l(μ) dμ`` of the small-scale function.
 
-    ``S(μ) = μ² [1 + 4u²(1 − μ²)]^{−(c+1)/2}`` [MODEL.md §3.8]. Odd ``l`` vanish (S is even).
+    ``S(μ) = μ² [1 + 4u²(1 − μ²)]^{−(c+1)/2}`` [docs/model.md §3.8]. Odd ``l`` vanish (S is even).
 
     Args:
         c: PSD exponent, > 1.
         u: ``B cos θ_d`` ≥ 0.
         l_max: number of coefficients (static).
-        half_range: integrate over ``μ ∈ [0, 1]`` only (MODEL.md's literal ``f_l``; the
+        half_range: integrate over ``μ ∈ [0, 1]`` only (the literal ``f_l`` of docs/model.md §3.8; the
             convolution then carries ``χ(h·m > 0)``). Default: the whole range (static).
     Returns:
         (..., l_max), broadcast shape of ``c`` and ``u``, their floating dtype.
@@ -275,7 +275,7 @@ def small_scale_coefficients(c, u, *, l_max: int = 100, half_range: bool = False
 
 
 def convolution_coefficients(beta, p, c, u, *, l_max: int = 100):
-    """``(S*D)_l = √(4π/(2l+1)) S_l D_l`` (Funk-Hecke) [MODEL.md §3.8]; shape (..., l_max)."""
+    """``(S*D)_l = √(4π/(2l+1)) S_l D_l`` (Funk-Hecke) [docs/model.md §3.8]; shape (..., l_max)."""
     l_max = _check_l_max(l_max)
     dtype = float_dtype(beta, p, c, u)
     d_l = ndf_coefficients(jnp.asarray(beta, dtype), jnp.asarray(p, dtype), l_max=l_max)
@@ -310,7 +310,7 @@ def zonal_sum(coeffs, cos_theta):
 
 
 def lobe_harmonic(cos_theta_h, beta, p, c, u, *, l_max: int = 100):
-    """``(S*D)(θ_h)`` as the band-limited zonal-harmonic sum [HP17 Eq. 39-41; MODEL.md §3.8].
+    """``(S*D)(θ_h)`` as the band-limited zonal-harmonic sum [HP17 Eq. 39-41; docs/model.md §3.8].
 
     ``(S*D)(θ_h) = Σ_{l<l_max} √(4π/(2l+1)) S_l D_l Y_l(cos θ_h) = Σ_{l<l_max} S_l D_l P_l(cos θ_h)``
     with ``D_l``, ``S_l`` from :func:`ndf_coefficients`, :func:`small_scale_coefficients`.

@@ -1,4 +1,4 @@
-"""MERL ``.binary`` BRDF files: read, write, validity mask, sample directions [MODEL.md §7].
+"""MERL ``.binary`` BRDF files: read, write, validity mask, sample directions [docs/model.md §7].
 
 NumPy I/O (float64 NumPy arrays in and out; nothing here needs JAX's x64 mode).
 
@@ -179,7 +179,7 @@ def _grid_directions(convention: str):
 
 
 def _grid_cosines(convention: str):
-    """``(cos θ_i, cos θ_o)`` of every MERL cell [MODEL.md §7]."""
+    """``(cos θ_i, cos θ_o)`` of every MERL cell [docs/model.md §7.3]."""
     th, td, pd = _axis_angles(convention)
     a = np.cos(th) * np.cos(td)
     b = np.sin(th) * np.sin(td) * np.cos(pd)

@@ -1,4 +1,4 @@
-"""The two-scale BRDF: a short composition of the kernels [HP17; MODEL.md §2, §3.6-3.11].
+"""The two-scale BRDF: a short composition of the kernels [HP17; docs/model.md §2, §3.6-3.11].
 
 Per channel (wavelength λ; all channels share the geometry and β, p, σ_s, b, c):
 
@@ -76,7 +76,7 @@ def _safe_csqrt(z):
 
 
 def polarisation_q(cos_i, cos_o, phi, eta, k):
-    """Full polarisation factor ``Q = |Q_ss|² + |Q_sp|² + |Q_ps|² + |Q_pp|²`` [MODEL.md §3.7].
+    """Full polarisation factor ``Q = |Q_ss|² + |Q_sp|² + |Q_ps|² + |Q_pp|²`` [docs/model.md §3.7].
 
     ``ε = (η + ik)²``, ``w_x = √(ε − sin²θ_x)`` (principal root: Re ≥ 0, Im ≥ 0),
     ``φ_s = φ_o − φ_i − π``, so ``cos φ_s = −cos φ`` with ``φ = |φ_i − φ_o|``; ``sin φ_s`` only
@@ -108,7 +108,7 @@ def polarisation_q(cos_i, cos_o, phi, eta, k):
 
 
 def apparatus_factor(cos_theta, e):
-    """MERL apparatus factor ``L(θ) = [1 − (2θ/π)²]^e``, θ in radians [MODEL.md §3.11].
+    """MERL apparatus factor ``L(θ) = [1 − (2θ/π)²]^e``, θ in radians [docs/model.md §3.11].
 
     ``θ = atan2(sin θ, cos θ)`` (finite slope at normal incidence, unlike ``acos``); the base is
     positive above the horizon, and at or below it ``L`` is 0.
@@ -120,7 +120,7 @@ def apparatus_factor(cos_theta, e):
 
 
 def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
-    """Diffuse layer of a dielectric [MODEL.md §3.9]; per channel, shape ``(..., N)``.
+    """Diffuse layer of a dielectric [docs/model.md §3.9]; per channel, shape ``(..., N)``.
 
     plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))`` (``/η̄²`` with ``diffuse_eta2``);
     subsurface: ``ρ_d (1−F_i)(1−F_o) [1/(4π(cos θ'_i + cos θ'_o)) + (1 + e^{−(4/3)A√(3(1−ρ_d))})

@@ -1,4 +1,4 @@
-"""Physical parameters of the two-scale model and their map to an unconstrained space [MODEL.md §4].
+"""Physical parameters of the two-scale model and their map to an unconstrained space [docs/model.md §4].
 
 =========  ======  ====  ==========================================  ================================
 field      symbol  unit  valid range (= range of the unconstrained   paper

@@ -80,14 +80,14 @@ def _lobe_names(config) -> tuple[str, ...]:
 
 
 def _dirs(theta_h, theta_d, phi_d):
-    """NumPy ``(wi, wo)`` of half/difference angles (``φ_h = 0``; MODEL.md §7)."""
+    """NumPy ``(wi, wo)`` of half/difference angles (``φ_h = 0``; docs/model.md §7.3)."""
     from twoscale.geometry import _dirs_from_half_diff
 
     return _dirs_from_half_diff(np, *np.broadcast_arrays(theta_h, theta_d, phi_d))
 
 
 def _half_diff(wi, wo):
-    """NumPy ``(θ_h, θ_d, φ_d)`` of direction pairs (MODEL.md §7; plotting only).
+    """NumPy ``(θ_h, θ_d, φ_d)`` of direction pairs (docs/model.md §7.3; plotting only).
 
     ``h = (i+o)/|i+o|``, ``d = R_y(−θ_h) R_z(−φ_h) i``. The JAX version is
     :func:`twoscale.geometry.half_diff_from_dirs`; this one avoids compiling eager JAX ops.

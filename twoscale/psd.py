@@ -1,12 +1,12 @@
 """Nano-scale roughness: the K-correlation (ABC) PSD and its renormalisation [HP17 Eq. 16, 19].
 
-PSD (MODEL.md §3.4), ``f`` in 1/µm, ``σ_s`` and ``b`` in µm, ``c > 1``::
+PSD (docs/model.md §3.4), ``f`` in 1/µm, ``σ_s`` and ``b`` in µm, ``c > 1``::
 
     S_HS(f) = (c−1)/(2π) · σ_s² b² · (1 + b² f²)^{−(c+1)/2},      ∫_{R²} S_HS d²f = σ_s².
 
-Renormalisation (MODEL.md §3.5): the part of the PSD that falls on propagating directions,
+Renormalisation (docs/model.md §3.5): the part of the PSD that falls on propagating directions,
 ``σ_rel²(θ) = ∫_{‖o_xy‖≤1} S_HS((o_xy + i_xy)/λ) d²o_xy / λ²``, as the dimensionless ratio
-``R(s; B, c) = σ_rel²/σ_s²`` with ``s = sin θ`` and ``B = b/λ``. MODEL.md writes it as a radial
+``R(s; B, c) = σ_rel²/σ_s²`` with ``s = sin θ`` and ``B = b/λ``. docs/model.md §3.5 writes it as a radial
 integral around the specular point::
 
     R = G(1−s) + ∫_{1−s}^{1+s} w(r) g(r) dr,   G(r) = 1 − (1 + B²r²)^{−a},   g = G',   a = (c−1)/2,
@@ -28,7 +28,7 @@ relative to 25-digit mpmath on 67 points including the corners ``s ∈ {0, 1}``,
 ``c ∈ {1.01, 10}``; ≤ 7e-13 against the SciPy reference of ``tables/check_renorm.py`` (the
 reference's own accuracy). 32 nodes already give ≤ 3e-12.
 
-Stable scaled form (MODEL.md §6 traps 4-5). Dividing by the small-B asymptote ``(c−1)B²/2 = aB²``::
+Stable scaled form (docs/model.md §6 traps 4-5). Dividing by the small-B asymptote ``(c−1)B²/2 = aB²``::
 
     ρ(s; B, c) = R/(aB²) = (1/π) ∫_0^π (1 − s cos ψ) · ℓ(B²r²) · φ(−a log(1 + B²r²)) dψ,
 
@@ -363,7 +363,7 @@ def _scaled(sin_theta, B, c, path: str):
 
 
 def renormalisation(sin_theta, B, c, *, path: str = "tables"):
-    """Renormalisation ratio ``R(s; B, c) = σ_rel²/σ_s²`` [HP17 Eq. 19; MODEL.md §3.5].
+    """Renormalisation ratio ``R(s; B, c) = σ_rel²/σ_s²`` [HP17 Eq. 19; docs/model.md §3.5].
 
     ``R = ∫_{‖o_xy‖≤1} S_HS((o_xy + i_xy)/λ) d²o_xy / (λ² σ_s²)``: the fraction of the nano-scale
     roughness variance on propagating directions. ``R(0) = 1 − (1+B²)^{−(c−1)/2}``, R → 1 as
@@ -384,7 +384,7 @@ def renormalisation(sin_theta, B, c, *, path: str = "tables"):
 
 
 def diffraction_ratio(sin_theta, B, c, *, path: str = "tables"):
-    """The stable ratio ``(c−1) B² / R(s; B, c)`` of the diffraction lobe (MODEL.md §2, §6 traps 4-5).
+    """The stable ratio ``(c−1) B² / R(s; B, c)`` of the diffraction lobe (docs/model.md §2, §6 traps 4-5).
 
     Both ``(c−1)B²`` and R tend to 0 as c → 1 or B → 0; the ratio is ``2/ρ`` with
     ``ρ = R/((c−1)B²/2)`` evaluated directly (module docstring), so it is finite, with finite

@@ -1,7 +1,7 @@
 """Smith shadowing-masking for the exponential power distribution [HP17 Eq. 36-38].
 
 Slopes are β-normalised. The EPD's slope density is ``P22(x, y) = c_p exp[−(x² + y²)^p]``,
-``c_p = p/(π Γ(1/p))``, its marginal ``P2(r) = c_p ∫_{−∞}^{∞} exp[−(r² + q²)^p] dq`` (MODEL.md §3.3:
+``c_p = p/(π Γ(1/p))``, its marginal ``P2(r) = c_p ∫_{−∞}^{∞} exp[−(r² + q²)^p] dq`` (docs/model.md §3.3:
 the paper's lower bound 0 is a typo for −∞), and with ``a = β tan θ``::
 
     Λ(a; p) = ∫_{1/a}^{∞} (r a − 1) P2(r) dr,        G1 = 1/(1 + Λ).
@@ -70,7 +70,7 @@ is treated as 0.
 
 Joint masking-shadowing [HP17 §5; Heitz 2014, Eq. 101; van Ginneken et al. 1998]:
 height-direction correlated ``G = 1/(1 + max(Λ_i, Λ_o) + λ(φ) min(Λ_i, Λ_o))`` with
-``λ(φ) = 4.41 φ/(4.41 φ + 1)``, ``φ = |φ_i − φ_o|`` wrapped into [0, π] (MODEL.md §3.3), or the
+``λ(φ) = 4.41 φ/(4.41 φ + 1)``, ``φ = |φ_i − φ_o|`` wrapped into [0, π] (docs/model.md §3.3), or the
 uncorrelated product ``G1(i) G1(o)`` (Mitsuba 3, pbrt).
 """
 
@@ -378,7 +378,7 @@ def van_ginneken(phi):
     """Van Ginneken's azimuthal correlation ``λ(φ) = 4.41 φ/(4.41 φ + 1)``.
 
     ``φ`` is first wrapped into [0, π] (``|φ| mod 2π``, folded at π), which reciprocity and
-    isotropy require (MODEL.md §3.3; the reference does not wrap). ``λ(0) = 0``, ``λ(π) ≈ 0.933``.
+    isotropy require (docs/model.md §3.3; the reference does not wrap). ``λ(0) = 0``, ``λ(π) ≈ 0.933``.
 
     Args:
         phi: relative azimuth ``φ_i − φ_o`` in radians, any real value.
@@ -407,7 +407,7 @@ def joint_g_from_lambdas(lambda_i, lambda_o, phi, *, correlated: bool = True):
 
 
 def joint_g(tan_theta_i, tan_theta_o, phi, beta, p, *, correlated: bool = True, path="tables"):
-    """Joint masking-shadowing ``G(i, o)`` of the EPD (MODEL.md §3.3), used by both lobes.
+    """Joint masking-shadowing ``G(i, o)`` of the EPD (docs/model.md §3.3), used by both lobes.
 
     Args:
         tan_theta_i, tan_theta_o: ``tan θ ≥ 0`` of the two directions.

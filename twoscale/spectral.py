@@ -46,7 +46,7 @@ linearly in λ (exact at the nodes).
 
 References:
     [HP17] N. Holzschuch, R. Pacanowski, "A Two-Scale Microfacet Reflectance Model Combining Reflection
-        and Diffraction", ACM TOG 36(4) 66, 2017 (§3.10 of MODEL.md).
+        and Diffraction", ACM TOG 36(4) 66, 2017 (docs/model.md §3.10).
     [CIE] CIE 015:2018 Colorimetry; CIE 1931 2° standard observer and D65 as tabulated by colour-science.
     [sRGB] IEC 61966-2-1:1999 (linear sRGB primaries, D65 white).
     [RII] M. N. Polyanskiy, "Refractiveindex.info database of optical constants", Sci. Data 11, 94 (2024).
@@ -82,7 +82,7 @@ __all__ = [
 ]
 
 RGB_WAVELENGTHS = (0.645, 0.526, 0.444)
-"""(λ_R, λ_G, λ_B) in µm [MODEL.md §1]."""
+"""(λ_R, λ_G, λ_B) in µm [docs/model.md §1]."""
 
 PRESETS = ("nickel", "aluminium", "gold", "silver", "copper", "chromium", "brass")
 """Names of the packaged metal presets (see :func:`preset` for aliases)."""

@@ -1,4 +1,4 @@
-"""Fitting BRDF models to MERL measurements (MODEL.md §8).
+"""Fitting BRDF models to MERL measurements (docs/model.md §8).
 
 ``fit(data, ...)`` runs the multi-start, coarse-to-fine Levenberg-Marquardt fit and returns a
 :class:`FitResult`; ``python -m twoscale.fit material.binary`` is the command-line front end.

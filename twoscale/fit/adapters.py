@@ -24,7 +24,7 @@ import numpy as np
 from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
 from twoscale.fit.starts import DataStats, conductor_k_for_f0, dielectric_eta_for_f0
 
-# Start grid of MODEL.md §8.
+# Start grid of docs/model.md §8.
 START_P = (0.5, 1.0, 2.0)
 START_C = (1.5, 2.5)
 START_A_SPEC = (0.3, 0.7)
@@ -97,7 +97,7 @@ def _epd_d0(beta: float, p: float) -> float:
 
 
 def _renorm_at_normal(big_b: float, c: float) -> float:
-    """``R(0; B, c) = 1 − (1 + B²)^{−(c−1)/2}`` (MODEL.md §3.5)."""
+    """``R(0; B, c) = 1 − (1 + B²)^{−(c−1)/2}`` (docs/model.md §3.5)."""
     return 1.0 - (1.0 + big_b * big_b) ** (-(c - 1.0) / 2.0)
 
 

@@ -1,6 +1,6 @@
 """Fit a BRDF model to MERL data: starts, coarse-to-fine schedule, Levenberg-Marquardt.
 
-Protocol (MODEL.md §8): float64; cosine-weighted linear or log residuals over the valid cells
+Protocol (docs/model.md §8): float64; cosine-weighted linear or log residuals over the valid cells
 (optionally only ``θ_i, θ_o ≤ max_theta``); parameters optimised in unconstrained space; several
 starts; RMSE reported on all valid cells. The schedule is coarse to fine: every start is fitted
 on a small random subsample of the cells, the best few go on to a larger subsample, and the best

@@ -1,6 +1,6 @@
 """Residuals of a BRDF fit to MERL data, their normal equations, and the compressed problem.
 
-Metrics (MODEL.md §8, Löw et al. 2012), per valid cell and channel, with ``ρ`` the BRDF (1/sr):
+Metrics (docs/model.md §8, Löw et al. 2012), per valid cell and channel, with ``ρ`` the BRDF (1/sr):
 
 - ``"linear"``: ``r = (ρ_model − ρ_meas) cos θ_i``
 - ``"log"``:    ``r = log(1 + ρ_model cos θ_i) − log(1 + ρ_meas cos θ_i)``
