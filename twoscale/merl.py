@@ -27,6 +27,7 @@ starts with the path and says what is wrong. Bad arguments raise :class:`ValueEr
 from __future__ import annotations
 
 import errno
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,7 @@ __all__ = [
     "bin_to_angles",
     "angles_to_bin",
     "grid_angles",
+    "grid_directions",
     "valid_geometric",
     "read",
     "write",
@@ -178,6 +180,12 @@ def _grid_directions(convention: str):
     return _dirs_from_half_diff(np, *_axis_angles(convention))
 
 
+def grid_directions(convention: str = "lower"):
+    """``(wi, wo)`` of every MERL cell (``φ_h = 0``), float64 ``(90, 90, 180, 3)`` each."""
+    _check_convention(convention)
+    return _grid_directions(convention)
+
+
 def _grid_cosines(convention: str):
     """``(cos θ_i, cos θ_o)`` of every MERL cell [docs/model.md §7.3]."""
     th, td, pd = _axis_angles(convention)
@@ -206,6 +214,9 @@ class MerlData:
         valid: bool ``(90, 90, 180)``, True where all three raw channels are ≥ 0. Read-only.
         path: the file it was read from, or None.
         name: material name (the file stem for files read from disk).
+        size: the file's size in bytes (files read from disk; else None).
+        sha256: the SHA-256 of the file's bytes, hex (files read from disk; else None): what a
+            fit record cites to name its input unambiguously.
 
     Construction checks shapes, finiteness and non-negativity of the valid cells, and zeroes the
     invalid ones (copying only if needed).
@@ -215,6 +226,8 @@ class MerlData:
     valid: np.ndarray
     path: Path | None = None
     name: str = ""
+    size: int | None = None
+    sha256: str | None = None
 
     def __post_init__(self):
         values = np.asarray(self.values, dtype=np.float64)
@@ -259,8 +272,7 @@ class MerlData:
 
     def directions(self, convention: str = "lower"):
         """``(wi, wo)`` of every cell with ``φ_h = 0``, float64 ``(90, 90, 180, 3)`` each."""
-        _check_convention(convention)
-        return _grid_directions(convention)
+        return grid_directions(convention)
 
 
 def _fail(path, problem: str):
@@ -310,7 +322,14 @@ def read(path) -> MerlData:
     values = np.empty((*SHAPE, 3))  # C-contiguous, RGB last
     np.multiply(np.moveaxis(raw, 0, -1), SCALE, out=values)
     values[~valid] = 0.0
-    return MerlData(values=values, valid=valid, path=path, name=path.stem)
+    return MerlData(
+        values=values,
+        valid=valid,
+        path=path,
+        name=path.stem,
+        size=n,
+        sha256=hashlib.sha256(data).hexdigest(),
+    )
 
 
 def write(path, values, valid=None) -> Path:

@@ -288,6 +288,11 @@ class _Group:
 #: gradient in σ_s: at σ_s = 0 exactly, ∂A_s/∂σ_s = 0 and the solver could not leave it).
 NESTED_A_SPEC = 0.95
 NESTED_LABEL = "nested"
+#: The other full-model starts from the special case: ``(c, A_spec(0), b µm)``. A diffraction
+#: lobe carrying 30 % or 70 % of the specular energy at normal incidence with a halo of
+#: half-width ≈ 15° (b = 1 µm), and a strong lobe (A_spec(0) = 0.05) with a narrow core and a
+#: power-law tail (b = 30 µm): the basin of sharp highlights that widen at grazing θ_d.
+NESTED_GRID = ((1.5, 0.3, 1.0), (1.5, 0.7, 1.0), (2.5, 0.3, 1.0), (2.5, 0.7, 1.0))
 
 
 def _nested_starts(params, cfg, fixed: dict) -> list[tuple[str, object]]:
@@ -295,21 +300,19 @@ def _nested_starts(params, cfg, fixed: dict) -> list[tuple[str, object]]:
 
     The specular parameters (β, p, η, k or ρ_d, e) are those of the special case's fit; the
     nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
-    itself, with a weak diffraction lobe whose gradient is not 0) and the grid of
-    :data:`~twoscale.fit.adapters.START_C` × :data:`~twoscale.fit.adapters.START_A_SPEC`
-    (a diffraction lobe carrying 30 % or 70 % of the specular energy at normal incidence).
+    itself, with a weak diffraction lobe whose gradient is not 0) and the points of
+    :data:`NESTED_GRID`.
     """
-    from twoscale.fit.adapters import START_A_SPEC, START_B, START_C, sigma_s_for_a_spec
+    from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
 
-    b = float(fixed.get("b", START_B))
     wl = float(np.median(np.asarray(cfg.wavelengths)))
     out = []
-    for label, a_spec, c in [(NESTED_LABEL, NESTED_A_SPEC, START_C[0])] + [
-        (f"from the special case, c={c:g} A_spec(0)={a:g}", a, c)
-        for c in START_C
-        for a in START_A_SPEC
+    for label, a_spec, c, b in [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
+        (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b)
+        for c, a, b in NESTED_GRID
     ]:
         c = float(fixed.get("c", c))
+        b = float(fixed.get("b", b))
         sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(a_spec, b, c, wl)))
         out.append((label, params.replace(sigma_s=sigma_s, b=b, c=c).for_config(cfg)))
     return out
@@ -957,6 +960,8 @@ def fit(
         data={
             "name": getattr(data, "name", None),
             "path": None if getattr(data, "path", None) is None else str(data.path),
+            "size_bytes": getattr(data, "size", None),
+            "sha256": getattr(data, "sha256", None),
             "n_measured_valid": prep.selection.n_measured_valid,
             "n_below_horizon": prep.selection.n_below_horizon,
         },

@@ -117,6 +117,34 @@ class FitResult:
     def material(self) -> str:
         return str(self.config.get("material", self.model))
 
+    @property
+    def model_config(self):
+        """The fitted model's configuration as an object: a :class:`twoscale.ModelConfig` (the
+        two-scale model) or a :class:`~twoscale.baselines.CookTorranceConfig` (a baseline), ready
+        for ``twoscale.brdf(result.params, wi, wo, result.model_config)``."""
+        from twoscale.fit.adapters import config_from_dict
+
+        return config_from_dict(self.config)
+
+    def evaluate(self, wi, wo):
+        """The fitted BRDF (1/sr, without the cosine) at unit directions ``wi``, ``wo``
+        (``(..., 3)``, normal = z; broadcast); ``(..., C)``."""
+        from twoscale.fit.adapters import adapter_for
+
+        return adapter_for(self.model_config).evaluate(self.params, wi, wo)
+
+    def evaluate_merl(self, convention: str = "lower"):
+        """The fitted BRDF on the whole MERL grid, ``(90, 90, 180, C)`` in 1/sr (``convention``:
+        ``"lower"`` bin edges, as the fit's cells, or ``"centre"``)."""
+        from twoscale.fit.adapters import adapter_for
+        from twoscale.merl import grid_directions
+
+        adapter = adapter_for(self.model_config)
+        if hasattr(adapter, "evaluate_grid"):
+            return adapter.evaluate_grid(self.params, convention)
+        wi, wo = grid_directions(convention)
+        return adapter.evaluate(self.params, wi, wo)
+
     def to_dict(self) -> dict:
         params = self.params_dict
         if params is None:
