@@ -335,6 +335,30 @@ def test_choose_type_tie_goes_to_the_physical_type():
     assert _choose_type({"conductor": (0.101, metal), "plastic": (0.100, plastic)})[0] == "plastic"
 
 
+def test_choose_type_a_conductor_without_the_measured_body_loses():
+    """A conductor fit with the lower RMS that leaves out a visible diffuse body (it would render
+    black with a highlight) loses to the plastic; a metal's own faint tail does not count."""
+    from twoscale import TwoScaleParams
+    from twoscale.fit.driver import _choose_type
+
+    cond = TwoScaleParams.conductor(0.01, 0.5, (1.0, 1.0, 1.0), (0.1, 0.1, 0.1))
+    plastic = TwoScaleParams.plastic(0.01, 0.5, (1.1, 1.1, 1.1), (0.27, 0.03, 0.02))
+    best = {"conductor": (0.07, cond), "plastic": (0.10, plastic)}
+    red = np.array([0.088, 0.011, 0.0032])  # a red phenolic's floor (1/sr), albedo π ρ ≈ 0.06
+    body = {"measured": red, "conductor": red * 1e-6, "plastic": red * 0.8}
+    chosen, reason = _choose_type(best, body)
+    assert chosen == "plastic" and "diffuse body" in reason
+    # The conductor reproduces the floor: the lower RMS wins.
+    assert _choose_type(best, {**body, "conductor": red * 0.9})[0] == "conductor"
+    # A faint floor (albedo 0.3 %, a metal's far tail): not a body, the lower RMS wins.
+    faint = {k: v * 0.05 for k, v in body.items()}
+    assert _choose_type(best, faint)[0] == "conductor"
+    # The plastic misses the body even more than the conductor: no reason to switch.
+    assert _choose_type(best, {**body, "plastic": red * 1e-8})[0] == "conductor"
+    # Without body levels the rule is off.
+    assert _choose_type(best)[0] == "conductor"
+
+
 @pytest.mark.parametrize("material", ["conductor", "plastic"])
 def test_type_choice_on_synthetic_materials(material):
     """``material="auto"`` types a synthetic conductor as a conductor and a plastic as a plastic."""

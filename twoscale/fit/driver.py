@@ -38,7 +38,7 @@ from twoscale.fit.residuals import (
     select_cells,
     sum_squares,
 )
-from twoscale.fit.starts import data_stats
+from twoscale.fit.starts import data_stats, floor_level
 
 MATERIALS = ("conductor", "plastic", "subsurface")
 #: Material types tried by ``material="auto"`` (subsurface is only fitted when asked for).
@@ -289,10 +289,17 @@ class _Group:
 NESTED_A_SPEC = 0.95
 NESTED_LABEL = "nested"
 #: The other full-model starts from the special case: ``(c, A_spec(0), b µm)``. A diffraction
-#: lobe carrying 30 % or 70 % of the specular energy at normal incidence with a halo of
-#: half-width ≈ 15° (b = 1 µm), and a strong lobe (A_spec(0) = 0.05) with a narrow core and a
-#: power-law tail (b = 30 µm): the basin of sharp highlights that widen at grazing θ_d.
-NESTED_GRID = ((1.5, 0.3, 1.0), (1.5, 0.7, 1.0), (2.5, 0.3, 1.0), (2.5, 0.7, 1.0))
+#: lobe carrying 70 % or 30 % of the specular energy at normal incidence with a halo of
+#: half-width ≈ 15° (b = 1 µm); a strong lobe (A_spec(0) = 0.05, 95 % of the energy) with a
+#: narrow core and a power-law tail (b = 30 µm), the basin of sharp highlights that widen towards
+#: grazing θ_d (phenolics, plastics: the winning start on 4 of 8 stand-ins tried); and a strong,
+#: wide lobe (b = 0.3 µm). Starts that end in the same minimum are dropped after the first stage.
+NESTED_GRID = (
+    (1.5, 0.3, 1.0),
+    (2.5, 0.7, 1.0),
+    (1.5, 0.05, 30.0),
+    (1.5, 0.05, 0.3),
+)
 
 
 def _nested_starts(params, cfg, fixed: dict) -> list[tuple[str, object]]:
@@ -497,6 +504,7 @@ class _Prepared:
     pairs: object  # Pairs, in random order: each stage fits a prefix
     cells_upto: np.ndarray  # cells held by the first k + 1 pairs
     buffer: dict  # device buffer of all pairs
+    valid_grid: np.ndarray  # (90, 90, 180) bool: the data's valid cells
 
     @property
     def n_fit(self) -> int:
@@ -525,7 +533,7 @@ def _prepare(data, max_theta_deg, seed) -> _Prepared:
     pairs = pairs.take(rng.permutation(len(pairs)))
     cells_upto = np.cumsum(pairs.w.sum(axis=1)).astype(np.int64)
     buffer, _ = pack(pairs)
-    return _Prepared(selection, stats, pairs, cells_upto, buffer)
+    return _Prepared(selection, stats, pairs, cells_upto, buffer, np.asarray(data.valid))
 
 
 def _make_candidates(configs, start_lists, fixed: dict):
@@ -658,15 +666,28 @@ TYPE_TIE_RTOL = 0.02
 DIELECTRIC_K = 0.5
 #: A plastic fit whose diffuse albedo (luminance) is below this has no diffuse layer: a metal.
 METAL_RHO_D = 0.01
+#: A measured diffuse body counts when its Lambertian albedo ``π ρ_floor`` (luminance of the
+#: floor level, :func:`~twoscale.fit.starts.floor_level`) reaches this: a visible body colour.
+BODY_ALBEDO = 0.01
+#: A conductor fit that reproduces less than this fraction of a counting body leaves it out: the
+#: log metric weighs a dim body little against a bright highlight, so such a fit can have the
+#: lower RMS and still render as a black object with a highlight. The plastic wins.
+MISSING_BODY = 0.5
 
 
-def _choose_type(best: dict) -> tuple[str, str]:
+def _choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     """Pick a material type from ``{type: (rms, params)}``; returns ``(type, reason)``.
 
-    The lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a conductor fit
-    with ``k < DIELECTRIC_K`` in every channel is a dielectric in disguise (plastic wins), and a
-    plastic fit without a diffuse layer (luminance ``ρ_d < METAL_RHO_D``) is a metal in disguise
-    (conductor wins).
+    ``body``: ``{"measured": (C,), type: (C,), ...}``, the floor level
+    (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's fit.
+
+    A conductor fit that leaves a measured diffuse body out (the body's albedo ``π ρ_floor`` at
+    least :data:`BODY_ALBEDO`, the fit's floor below :data:`MISSING_BODY` of it, and the plastic
+    fit's closer) loses to the plastic whatever its RMS: it would render black with a highlight.
+    Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
+    conductor fit with ``k < DIELECTRIC_K`` in every channel is a dielectric in disguise (plastic
+    wins), and a plastic fit without a diffuse layer (luminance ``ρ_d < METAL_RHO_D``) is a metal
+    in disguise (conductor wins).
     """
     order = sorted(best, key=lambda t: best[t][0])
     winner = order[0]
@@ -674,6 +695,21 @@ def _choose_type(best: dict) -> tuple[str, str]:
         return winner, "lower RMS"
     rms_c, p_c = best["conductor"]
     rms_p, p_p = best["plastic"]
+    if body is not None:
+        w = np.array([0.2126, 0.7152, 0.0722])
+        measured = float(np.asarray(body["measured"]) @ w)
+        frac_c = float(np.asarray(body["conductor"]) @ w) / max(measured, 1e-300)
+        frac_p = float(np.asarray(body["plastic"]) @ w) / max(measured, 1e-300)
+        if (
+            math.pi * measured >= BODY_ALBEDO
+            and frac_c < MISSING_BODY
+            and abs(math.log(max(frac_p, 1e-300))) < abs(math.log(max(frac_c, 1e-300)))
+        ):
+            return "plastic", (
+                f"the conductor fit leaves the measured diffuse body out (its floor is "
+                f"{frac_c:.0%} of the measured one, albedo π ρ = {math.pi * measured:.3g}; "
+                f"plastic: {frac_p:.0%})"
+            )
     if abs(rms_c - rms_p) > TYPE_TIE_RTOL * min(rms_c, rms_p):
         return winner, "lower RMS"
     k = np.asarray(p_c.k)
@@ -688,6 +724,19 @@ def _choose_type(best: dict) -> tuple[str, str]:
             f"RMS within {TYPE_TIE_RTOL:.0%}; the plastic fit has no diffuse layer (ρ_d = {rho_d:.3g})"
         )
     return winner, f"RMS within {TYPE_TIE_RTOL:.0%}; lower RMS"
+
+
+def _body_levels(best: dict, groups, prep: _Prepared) -> dict | None:
+    """Floor levels (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's
+    best fit (the model on the MERL grid), for :func:`_choose_type`; None without a grid path."""
+    out = {"measured": prep.stats.floor}
+    for mat, (_rms, params) in best.items():
+        g = next(g for g in groups if g.adapter.material == mat)
+        if not hasattr(g.adapter, "evaluate_grid"):
+            return None
+        grid = np.asarray(g.adapter.evaluate_grid(params, "lower"))
+        out[mat] = floor_level(grid, prep.valid_grid)
+    return out
 
 
 def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose_type: bool):
@@ -730,7 +779,7 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose_type
                 if mat not in best or c.cost < best[mat][0]:
                     params = Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen)
                     best[mat] = (c.cost, params)
-            winner, reason = _choose_type(best)
+            winner, reason = _choose_type(best, _body_levels(best, groups, prep))
             rms = {k: v[0] for k, v in best.items()}
             type_selection = {"rms": rms, "chosen": winner, "reason": reason, "stage": si + 1}
             say(

@@ -55,7 +55,6 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(values), axis=-1)
     n_ch = values.shape[-1]
     theta_h = (np.arange(90) / 90.0) ** 2 * (np.pi / 2)
-    theta_d = np.arange(90) * (np.pi / 180)
     luma = _LUMA if n_ch == 3 else np.full(n_ch, 1.0 / n_ch)
 
     # Profile along θ_h near normal incidence (θ_d ≤ 4°), averaged over φ_d and θ_d.
@@ -68,12 +67,7 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
     first = int(np.argmax(have))
     peak = prof[first]
 
-    band = (theta_h >= np.radians(50)) & (theta_h <= np.radians(70))
-    dband = theta_d <= np.radians(30)
-    sel = valid[band][:, dband]
-    vals = values[band][:, dband][sel]
-    floor = np.median(vals, axis=0) if vals.size else np.zeros(n_ch)
-    floor = np.minimum(floor, peak)
+    floor = np.minimum(floor_level(values, valid), peak)
 
     lum = (prof - floor) @ luma
     lum0 = lum[first]
@@ -93,6 +87,20 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
                 break
     width = max(width, 0.5 * float(theta_h[1]))
     return DataStats(peak=np.maximum(peak, 0.0), floor=np.maximum(floor, 0.0), width=width)
+
+
+def floor_level(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``(C,)``: the median over the valid cells of ``θ_h ∈ [50°, 70°]``, ``θ_d ≤ 30°`` of a
+    ``(90, 90, 180, C)`` MERL table (measured or modelled): the level of a dielectric's diffuse
+    body, the far tail of a metal's lobe; 0 where the band has no valid cell."""
+    theta_h = (np.arange(90) / 90.0) ** 2 * (np.pi / 2)
+    theta_d = np.arange(90) * (np.pi / 180)
+    band = (theta_h >= np.radians(50)) & (theta_h <= np.radians(70))
+    dband = theta_d <= np.radians(30)
+    values = np.asarray(values)
+    sel = np.asarray(valid)[band][:, dband]
+    vals = values[band][:, dband][sel]
+    return np.median(vals, axis=0) if vals.size else np.zeros(values.shape[-1])
 
 
 def conductor_k_for_f0(f0, eta):
