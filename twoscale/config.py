@@ -48,6 +48,12 @@ class ModelConfig:
             §3.9 form, which has no ``1/η²`` and whose albedo exceeds 1 for bright layers
             (ρ_d = 0.95, η = 1.5: ≈ 1.95); on, the diffuse albedo is at most ``1 − F(θ_i)``.
             Only the plastic diffuse term changes (subsurface keeps §3.9).
+        diffuse_fresnel: the plastic diffuse layer seen through the varnish: the Fresnel
+            transmissions ``(1 − F_i)(1 − F_o)`` and the inter-reflection ``1/(1 − ρ_d F_dr)``
+            (§3.9, the reference; default). Off: a Lambertian body ``ρ_d/π`` under the same
+            specular and diffraction lobes, which the varnish's η then no longer darkens towards
+            grazing angles (the form MERL's diffuse-dominated materials follow; see §8). Applies
+            to the plastic; ignored for the other materials.
         path: ``"tables"`` (precomputed C² spline tables; fast) or ``"exact"`` (quadrature).
         wavelengths: wavelengths in µm at which the model is evaluated; the default is the three
             RGB wavelengths (0.645, 0.526, 0.444), one per output channel.
@@ -65,6 +71,7 @@ class ModelConfig:
     shadowing: str = "correlated"
     apparatus: bool = False
     diffuse_eta2: bool = False
+    diffuse_fresnel: bool = True
     path: str = "tables"
     wavelengths: tuple[float, ...] = field(default=RGB_WAVELENGTHS)
     spectral_output: str = "rgb"
@@ -76,9 +83,22 @@ class ModelConfig:
         _choice("shadowing", self.shadowing, SHADOWING)
         _choice("path", self.path, PATHS)
         _choice("spectral_output", self.spectral_output, SPECTRAL_OUTPUTS)
-        for name in ("specular", "diffraction", "diffuse", "apparatus", "diffuse_eta2"):
+        for name in (
+            "specular",
+            "diffraction",
+            "diffuse",
+            "apparatus",
+            "diffuse_eta2",
+            "diffuse_fresnel",
+        ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ModelConfig.{name} = {getattr(self, name)!r}: expected a bool")
+        if not self.diffuse_fresnel:
+            if self.diffuse_eta2:
+                raise ValueError(
+                    "ModelConfig: diffuse_eta2 (radiance compression at the varnish) needs "
+                    "diffuse_fresnel=True (a Lambertian body has no varnish transmission)"
+                )
         if not isinstance(self.illuminant, str):
             raise ValueError(f"ModelConfig.illuminant = {self.illuminant!r}: expected a name")
         try:

@@ -122,11 +122,14 @@ def apparatus_factor(cos_theta, e):
 def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     """Diffuse layer of a dielectric [docs/model.md §3.9]; per channel, shape ``(..., N)``.
 
-    plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))`` (``/η̄²`` with ``diffuse_eta2``);
+    plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))`` (``/η̄²`` with ``diffuse_eta2``;
+    ``ρ_d/π`` with ``diffuse_fresnel=False``);
     subsurface: ``ρ_d (1−F_i)(1−F_o) [1/(4π(cos θ'_i + cos θ'_o)) + (1 + e^{−(4/3)A√(3(1−ρ_d))})
     e^{−√(3(1−ρ_d))}/(2π)]``, ``cos θ' = √(1 − sin²θ/η²)``, ``A = (1+F_dr)/(1−F_dr)``,
     ``F_dr = F_dr(η̄)``.
     """
+    if cfg.material == "plastic" and not cfg.diffuse_fresnel:  # a Lambertian body
+        return jnp.broadcast_to(rho_d / math.pi, jnp.broadcast_shapes(cos_i.shape, rho_d.shape))
     t_i = 1.0 - fresnel.dielectric(cos_i, eta)
     t_o = 1.0 - fresnel.dielectric(cos_o, eta)
     if cfg.material == "plastic":
