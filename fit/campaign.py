@@ -293,8 +293,7 @@ def fit_material(
     (schedule, metric, apparatus, angle cut, source) is reused instead of fitting again.
     """
     from twoscale import merl
-    from twoscale.config import ModelConfig
-    from twoscale.fit import fit
+    from twoscale.fit import fit, merl_protocol
     from twoscale.fit.residuals import select_cells
 
     data = merl.read(path)
@@ -356,9 +355,10 @@ def fit_material(
             _save_record(record, res, _record_entry(row, key, settings))
         return res
 
-    full = run("full", ModelConfig(apparatus=apparatus), "auto")
+    full = run("full", merl_protocol(apparatus=apparatus), "auto")
     row.material = full.material
-    run("specular", ModelConfig(apparatus=apparatus, diffraction=False), full.material)
+    # The special case under the full fit's own configuration (the same protocol), lobe off.
+    run("specular", dataclasses.replace(full.model_config, diffraction=False), full.material)
     for key in BASELINES:
         run(key, _baseline_config(key, apparatus))
     return row, results, data

@@ -237,3 +237,29 @@ def test_second_run_reuses_the_compilation_cache(files, tmp_path):
     )
     assert third.returncode == 0, third.stderr
     assert not off.exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "apparatus", "diffuse_fresnel"),
+    [([], True, False), (["--diffuse-fresnel"], True, True), (["--no-apparatus"], False, False)],
+)
+def test_cli_passes_the_merl_protocol(
+    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel
+):
+    """The two-scale fit gets :func:`twoscale.fit.merl_protocol` (apparatus factor, Lambertian
+    body) unless a flag says otherwise; the material type is left to the fit."""
+    import twoscale.fit.driver as driver
+
+    seen = {}
+
+    def spy(data, *, config, material, **kwargs):
+        seen.update(config=config, material=material)
+        raise driver.FitError("stopped by the test")
+
+    monkeypatch.setattr(driver, "fit", spy)
+    rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *flags])
+    assert rc == EXIT_FIT
+    assert seen["config"] == driver.merl_protocol(
+        apparatus=apparatus, diffuse_fresnel=diffuse_fresnel
+    )
+    assert seen["material"] == "auto"

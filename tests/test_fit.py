@@ -260,13 +260,20 @@ def test_nested_start_keeps_full_model_at_least_as_good():
 
 # ------------------------------------------------------------------ protocol, stopping, type
 def test_merl_protocol_default_is_apparatus():
-    """``fit(data)`` fits MERL data with the apparatus factor (its exponent e fitted)."""
+    """``fit(data)`` fits MERL data with the apparatus factor (its exponent e fitted) and a
+    plastic's body Lambertian; an explicit configuration is taken as given."""
     from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit import merl_protocol
     from twoscale.fit.driver import _resolve_configs
 
-    assert all(c.apparatus for c in _resolve_configs(None, None))
+    auto = _resolve_configs(None, None)
+    assert [c.material for c in auto] == ["conductor", "plastic"]
+    assert all(c.apparatus and not c.diffuse_fresnel for c in auto)
+    assert all(c == merl_protocol() for c in _resolve_configs(None, "conductor"))
     assert all(c.apparatus for c in _resolve_configs("auto", "plastic"))
     assert not any(c.apparatus for c in _resolve_configs(ModelConfig(), "auto"))
+    assert all(c.diffuse_fresnel for c in _resolve_configs(ModelConfig(), "auto"))
+    assert merl_protocol(diffuse_fresnel=True).diffuse_fresnel
     cfg = ModelConfig(material="conductor", apparatus=True, diffraction=False)
     true = TwoScaleParams.conductor(0.12, 1.2, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0), e=0.7)
     data = synthetic(true, cfg, noise=0.005, seed=4)

@@ -22,6 +22,9 @@ from twoscale.fit.driver import (
     fit as fit,
 )
 from twoscale.fit.driver import (
+    merl_protocol as merl_protocol,
+)
+from twoscale.fit.driver import (
     predict_cells as predict_cells,
 )
 from twoscale.fit.record import FitResult as FitResult

@@ -2,13 +2,15 @@
 
     python -m twoscale.fit material.binary [--out DIR] [--metric log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
-        [--full] [--no-apparatus] [--no-compile-cache]
+        [--full] [--no-apparatus] [--diffuse-fresnel] [--no-compile-cache]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
 MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)²]^e``, on the
 specular lobe, with ``e`` fitted (MERL's measured values fall off at grazing angles; without it
 the model is forced to fit that fall-off with its shape parameters). ``--no-apparatus`` fits the
-bare model. The baselines (``--baseline``) follow the same switch.
+bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
+(``ρ_d/π``, :func:`twoscale.fit.merl_protocol` says why); ``--diffuse-fresnel`` uses the
+reference's varnish-transmitted body instead.
 
 Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/twoscale/jax`` (default ``~/.cache/twoscale/jax``), so a second run, on any
@@ -81,6 +83,13 @@ def _parser() -> argparse.ArgumentParser:
         default=True,
         help="MERL's grazing fall-off L(θ_i) L(θ_o) on the specular lobe, exponent e fitted "
         "(default: on; --no-apparatus for the bare model)",
+    )
+    ap.add_argument(
+        "--diffuse-fresnel",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="a plastic's body seen through the varnish's Fresnel transmission, as in the "
+        "reference (default: off, a Lambertian body: MERL's plastics and fabrics fit better)",
     )
     ap.add_argument(
         "--compile-cache",
@@ -233,8 +242,7 @@ def _run(args, log) -> int:
         if where is not None:
             log(f"compilation cache: {where}")
     from twoscale.baselines import CookTorranceConfig
-    from twoscale.config import ModelConfig
-    from twoscale.fit.driver import FitError, fit
+    from twoscale.fit.driver import FitError, fit, merl_protocol
 
     t0 = time.perf_counter()
     truth = None
@@ -252,7 +260,11 @@ def _run(args, log) -> int:
     if args.baseline:
         config = CookTorranceConfig(args.baseline, apparatus=args.apparatus)
     else:
-        config = ModelConfig(diffraction=not args.no_diffraction, apparatus=args.apparatus)
+        config = merl_protocol(
+            diffraction=not args.no_diffraction,
+            apparatus=args.apparatus,
+            diffuse_fresnel=args.diffuse_fresnel,
+        )
     if args.example and args.material_type == "auto":
         material = "conductor"  # known for the example: keeps it fast
     try:
