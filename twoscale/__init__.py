@@ -8,12 +8,15 @@ The public surface (everything else lives in the submodules, which are public to
     rho = twoscale.brdf(params, wi, wo)                 # (..., 3), 1/sr, without cos θ_o
     parts = twoscale.lobes(params, wi, wo)              # {"specular", "diffraction", ...}
     a = twoscale.albedo(params, cos_theta_i)            # directional albedo
+    wo, pdf = twoscale.sample(params, wi, u)            # importance sampling, u: (..., 3) uniforms
+    table = twoscale.albedo_table(params, 256)          # albedo at cos θ_i = (i+1)/256
     table = twoscale.brdf_merl(params)                  # (90, 90, 180, 3) on the MERL grid, fast
     result = twoscale.fit(twoscale.merl.read("gold-metallic-paint.binary"))  # needs float64
 
 Components: :mod:`twoscale.fresnel`, :mod:`twoscale.distribution` (EPD), :mod:`twoscale.shadowing`
 (Smith Λ, G), :mod:`twoscale.psd` (K-correlation PSD, renormalisation), :mod:`twoscale.convolution`
-(S*D), :mod:`twoscale.tables` (C² spline tables), :mod:`twoscale.geometry`, :mod:`twoscale.merl`
+(S*D), :mod:`twoscale.sampling` (importance sampling, albedo table),
+:mod:`twoscale.tables` (C² spline tables), :mod:`twoscale.geometry`, :mod:`twoscale.merl`
 (MERL .binary I/O), :mod:`twoscale.spectral` (n,k presets, spectrum → sRGB),
 :mod:`twoscale.baselines` (GGX/Beckmann Cook-Torrance + Lambert), :mod:`twoscale.plots`.
 
@@ -51,6 +54,7 @@ from twoscale import model as model
 from twoscale import (
     psd as psd,
 )
+from twoscale import sampling as sampling
 from twoscale import (
     shadowing as shadowing,
 )
@@ -70,5 +74,8 @@ from twoscale.model import brdf_grid as brdf_grid
 from twoscale.model import brdf_merl as brdf_merl
 from twoscale.model import lobes as lobes
 from twoscale.params import TwoScaleParams as TwoScaleParams
+from twoscale.sampling import albedo_table as albedo_table
+from twoscale.sampling import pdf as pdf
+from twoscale.sampling import sample as sample
 
 __version__ = "0.1.0"
