@@ -45,7 +45,7 @@ TINY_SCHEDULE = "tiny"
 
 
 def schedule_for(name: str):
-    from twoscale.fit.driver import Stage
+    from twoscale.fit.schedule import Stage
 
     if name == TINY_SCHEDULE:
         return [Stage(n_cells=1024, keep=1, max_steps=3)]

@@ -243,8 +243,8 @@ def _scipy_vs_twoscale(sizes: Sizes):
     from benchmarks import numpy_model as nm
     from benchmarks.fit_worker import synthetic_material
     from twoscale.fit.adapters import adapter_for
-    from twoscale.fit.driver import Stage
-    from twoscale.fit.residuals import select_cells
+    from twoscale.fit.cells import select_cells
+    from twoscale.fit.schedule import Stage
     from twoscale.fit.starts import data_stats
     from twoscale.params import bounds_for
 
@@ -717,7 +717,7 @@ def variants(sizes: Sizes) -> str:
         fit_t = "—"
         if sizes.trade_fits:
             data = synthetic(params, cfg, noise=0.01, seed=2)
-            from twoscale.fit.driver import Stage
+            from twoscale.fit.schedule import Stage
 
             sched = (
                 [Stage(n_cells=1024, keep=1, max_steps=3)]

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twoscale.fit.driver import STALL_RTOL
+from twoscale.fit.solver import STALL_RTOL
 
 MODELS = ("full", "specular", "ggx", "beckmann")
 LABELS = {
@@ -212,7 +212,7 @@ def rmse_below(res, cells) -> dict:
     if got:
         return dict(got)
     from twoscale.fit.adapters import adapter_for, config_from_dict
-    from twoscale.fit.driver import predict_cells
+    from twoscale.fit.evaluation import predict_cells
 
     adapter = adapter_for(config_from_dict(res.config))
     return _cell_rmse(np.asarray(predict_cells(adapter, res.params, cells)), cells)
@@ -294,7 +294,7 @@ def fit_material(
     """
     from twoscale import merl
     from twoscale.fit import fit, merl_protocol
-    from twoscale.fit.residuals import select_cells
+    from twoscale.fit.cells import select_cells
 
     data = merl.read(path)
     row = Row(name=data.name, source=source)

@@ -344,7 +344,7 @@ def test_rmse_below_computes_from_params():
     by the model itself, the metric's definition on cells 10 % off."""
     from twoscale.baselines import CookTorranceConfig
     from twoscale.fit.adapters import adapter_for
-    from twoscale.fit.residuals import Cells
+    from twoscale.fit.cells import Cells
 
     res = _result(0.1, "baseline")
     adapter = adapter_for(CookTorranceConfig("ggx"))

@@ -178,12 +178,12 @@ def test_failed_fit_exits_3_and_leaves_nothing(files, tmp_path, capsys, monkeypa
     """No start with a finite fit: exit 3, one error line, nothing written."""
     import math
 
-    import twoscale.fit.driver as driver
+    import twoscale.fit.solver as solver
 
     def broken(cand, g, stage, data, n_active, m, opts):
         return cand.y, math.nan, np.zeros((0, 0)), 1, False, "non-finite values"
 
-    monkeypatch.setattr(driver, "_refine", broken)
+    monkeypatch.setattr(solver, "refine", broken)
     out = tmp_path / "out"
     rc = main([str(files["good"]), "--out", str(out), "--baseline", "ggx", "--quiet"])
     assert rc == EXIT_FIT
@@ -249,6 +249,7 @@ def test_cli_passes_the_merl_protocol(
     """The two-scale fit gets :func:`twoscale.fit.merl_protocol` (apparatus factor, Lambertian
     body) unless a flag says otherwise; the material type is left to the fit."""
     import twoscale.fit.driver as driver
+    from twoscale.fit import merl_protocol
 
     seen = {}
 
@@ -259,7 +260,5 @@ def test_cli_passes_the_merl_protocol(
     monkeypatch.setattr(driver, "fit", spy)
     rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *flags])
     assert rc == EXIT_FIT
-    assert seen["config"] == driver.merl_protocol(
-        apparatus=apparatus, diffuse_fresnel=diffuse_fresnel
-    )
+    assert seen["config"] == merl_protocol(apparatus=apparatus, diffuse_fresnel=diffuse_fresnel)
     assert seen["material"] == "auto"

@@ -21,16 +21,8 @@ import pytest
 from twoscale.baselines import CookTorranceConfig, CookTorranceParams
 from twoscale.fit import Stage, fit, load_result, synthetic
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.residuals import (
-    Cells,
-    Layout,
-    Problem,
-    compressed_residuals,
-    normal_equations,
-    pack,
-    pair_cells,
-    select_cells,
-)
+from twoscale.fit.cells import Cells, pack, pair_cells, select_cells
+from twoscale.fit.residuals import Layout, Problem, compressed_residuals, normal_equations
 from twoscale.fit.starts import data_stats
 
 CT = CookTorranceConfig("ggx")
@@ -264,15 +256,15 @@ def test_merl_protocol_default_is_apparatus():
     plastic's body Lambertian; an explicit configuration is taken as given."""
     from twoscale import ModelConfig, TwoScaleParams
     from twoscale.fit import merl_protocol
-    from twoscale.fit.driver import _resolve_configs
+    from twoscale.fit.material_type import resolve_configs
 
-    auto = _resolve_configs(None, None)
+    auto = resolve_configs(None, None)
     assert [c.material for c in auto] == ["conductor", "plastic"]
     assert all(c.apparatus and not c.diffuse_fresnel for c in auto)
-    assert all(c == merl_protocol() for c in _resolve_configs(None, "conductor"))
-    assert all(c.apparatus for c in _resolve_configs("auto", "plastic"))
-    assert not any(c.apparatus for c in _resolve_configs(ModelConfig(), "auto"))
-    assert all(c.diffuse_fresnel for c in _resolve_configs(ModelConfig(), "auto"))
+    assert all(c == merl_protocol() for c in resolve_configs(None, "conductor"))
+    assert all(c.apparatus for c in resolve_configs("auto", "plastic"))
+    assert not any(c.apparatus for c in resolve_configs(ModelConfig(), "auto"))
+    assert all(c.diffuse_fresnel for c in resolve_configs(ModelConfig(), "auto"))
     assert merl_protocol(diffuse_fresnel=True).diffuse_fresnel
     cfg = ModelConfig(material="conductor", apparatus=True, diffraction=False)
     true = TwoScaleParams.conductor(0.12, 1.2, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0), e=0.7)
@@ -313,57 +305,72 @@ def test_parameter_at_bound_is_named():
 def test_failed_fit_raises(ct_noisy, monkeypatch):
     """Non-finite costs from every start are a FitError (the CLI's exit 3)."""
     import twoscale.fit.driver as driver
+    import twoscale.fit.solver as solver
 
     def broken(cand, g, stage, data, n_active, m, opts):
         return cand.y, math.nan, np.zeros((7, 7)), 3, False, "non-finite values"
 
-    monkeypatch.setattr(driver, "_refine", broken)
+    monkeypatch.setattr(solver, "refine", broken)
     with pytest.raises(driver.FitError, match="finite"):
         fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 5)])
 
 
 def test_choose_type_tie_goes_to_the_physical_type():
     from twoscale import TwoScaleParams
-    from twoscale.fit.driver import _choose_type
+    from twoscale.fit.material_type import choose_type
 
     metal = TwoScaleParams.conductor(0.1, 1.0, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0))
     fake_metal = TwoScaleParams.conductor(0.1, 1.0, (1.5, 1.5, 1.5), (0.01, 0.02, 0.0))
     plastic = TwoScaleParams.plastic(0.1, 1.0, (1.5, 1.5, 1.5), (0.2, 0.3, 0.4))
     fake_plastic = TwoScaleParams.plastic(0.1, 1.0, (3.5, 3.5, 3.5), (1e-4, 1e-4, 1e-4))
     # A clear winner wins whatever its parameters.
-    assert _choose_type({"conductor": (0.10, metal), "plastic": (0.20, plastic)})[0] == "conductor"
-    assert _choose_type({"conductor": (0.20, metal), "plastic": (0.10, plastic)})[0] == "plastic"
+    assert choose_type({"conductor": (0.10, metal), "plastic": (0.20, plastic)})[0] == "conductor"
+    assert choose_type({"conductor": (0.20, metal), "plastic": (0.10, plastic)})[0] == "plastic"
     # Within 2 %: a conductor with k ≈ 0 is a dielectric; a plastic without diffuse is a metal.
-    tie = _choose_type({"conductor": (0.100, fake_metal), "plastic": (0.101, plastic)})
+    tie = choose_type({"conductor": (0.100, fake_metal), "plastic": (0.101, plastic)})
     assert tie[0] == "plastic" and "k <" in tie[1]
-    tie = _choose_type({"conductor": (0.101, metal), "plastic": (0.100, fake_plastic)})
+    tie = choose_type({"conductor": (0.101, metal), "plastic": (0.100, fake_plastic)})
     assert tie[0] == "conductor" and "no diffuse" in tie[1]
     # Both plausible: the lower RMS.
-    assert _choose_type({"conductor": (0.101, metal), "plastic": (0.100, plastic)})[0] == "plastic"
+    assert choose_type({"conductor": (0.101, metal), "plastic": (0.100, plastic)})[0] == "plastic"
 
 
 def test_choose_type_a_conductor_without_the_measured_body_loses():
-    """A conductor fit with the lower RMS that leaves out a visible diffuse body (it would render
-    black with a highlight) loses to the plastic; a metal's own faint tail does not count."""
+    """A conductor fit with the lower RMS that leaves out a diffuse body carrying much of the
+    material's light (it would render black with a highlight) loses to the plastic; the faint
+    scatter under a metal's highlight does not count."""
     from twoscale import TwoScaleParams
-    from twoscale.fit.driver import _choose_type
+    from twoscale.fit.material_type import choose_type
 
     cond = TwoScaleParams.conductor(0.01, 0.5, (1.0, 1.0, 1.0), (0.1, 0.1, 0.1))
     plastic = TwoScaleParams.plastic(0.01, 0.5, (1.1, 1.1, 1.1), (0.27, 0.03, 0.02))
     best = {"conductor": (0.07, cond), "plastic": (0.10, plastic)}
-    red = np.array([0.088, 0.011, 0.0032])  # a red phenolic's floor (1/sr), albedo π ρ ≈ 0.06
-    body = {"measured": red, "conductor": red * 1e-6, "plastic": red * 0.8}
-    chosen, reason = _choose_type(best, body)
+    red = np.array([0.088, 0.011, 0.0032])  # a red phenolic's floor (1/sr), π ρ ≈ 0.084
+    albedo = np.full(3, 0.05)  # all the light it reflects: the body is most of it
+    body = {"measured": red, "conductor": red * 1e-6, "plastic": red * 0.8, "albedo": albedo}
+    chosen, reason = choose_type(best, body)
     assert chosen == "plastic" and "diffuse body" in reason
     # The conductor reproduces the floor: the lower RMS wins.
-    assert _choose_type(best, {**body, "conductor": red * 0.9})[0] == "conductor"
-    # A faint floor (albedo 0.3 %, a metal's far tail): not a body, the lower RMS wins.
-    faint = {k: v * 0.05 for k, v in body.items()}
-    assert _choose_type(best, faint)[0] == "conductor"
+    assert choose_type(best, {**body, "conductor": red * 0.9})[0] == "conductor"
+    # The same floor under a bright highlight (a metal reflecting 60 % of the light): not a body.
+    assert choose_type(best, {**body, "albedo": np.full(3, 0.6)})[0] == "conductor"
     # The plastic misses the body even more than the conductor: no reason to switch.
-    assert _choose_type(best, {**body, "plastic": red * 1e-8})[0] == "conductor"
+    assert choose_type(best, {**body, "plastic": red * 1e-8})[0] == "conductor"
     # Without body levels the rule is off.
-    assert _choose_type(best)[0] == "conductor"
+    assert choose_type(best)[0] == "conductor"
+
+
+def test_bihemispherical_albedo_of_a_lambertian_table():
+    """The albedo the type choice weighs a body against: ρ for a Lambertian table (to the
+    quadrature's 5 %), less where cells are invalid."""
+    from twoscale.merl import bihemispherical_albedo
+
+    values = np.broadcast_to(np.array([0.1, 0.5, 0.9]) / np.pi, (90, 90, 180, 3))
+    valid = np.ones((90, 90, 180), bool)
+    full = bihemispherical_albedo(values, valid)
+    np.testing.assert_allclose(full, [0.1, 0.5, 0.9], rtol=0.05)
+    part = bihemispherical_albedo(values, valid & (np.arange(90) < 60)[None, :, None])
+    assert np.all(part < 0.99 * full) and np.all(part > 0.5 * full)
 
 
 @pytest.mark.parametrize("material", ["conductor", "plastic"])
@@ -391,13 +398,14 @@ def test_type_choice_on_synthetic_materials(material):
 def test_no_progress_raises(ct_noisy, monkeypatch):
     """Every solver step rejected from every start: a FitError (the CLI's exit 3), not a result."""
     import twoscale.fit.driver as driver
+    import twoscale.fit.solver as solver
 
-    real = driver._solve
+    real = solver.solve
 
     def stuck(problem, y0, *args):
         _, res, _, k, _, rr0, _, jtj = real(problem, y0, *args)
         return y0, res, False, k, 0, rr0, rr0, jtj  # y never moves, no accepted step
 
-    monkeypatch.setattr(driver, "_solve", stuck)
+    monkeypatch.setattr(solver, "solve", stuck)
     with pytest.raises(driver.FitError, match="progress"):
         fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 6)])

@@ -12,8 +12,10 @@ import pytest
 import twoscale
 from twoscale import merl, model
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.driver import _Candidate, _same_solution, predict_cells
-from twoscale.fit.residuals import Layout, Problem, normal_equations, pack, pair_cells, select_cells
+from twoscale.fit.candidates import Candidate, same_solution
+from twoscale.fit.cells import pack, pair_cells, select_cells
+from twoscale.fit.evaluation import predict_cells
+from twoscale.fit.residuals import Layout, Problem, normal_equations
 from twoscale.fit.synthetic import synthetic
 from twoscale.geometry import _dirs_from_half_diff
 
@@ -169,7 +171,8 @@ def test_factorised_normal_equations_match_jacfwd(conductor_data):
 
 def test_stage_bins_give_the_same_pass(conductor_data):
     """A small stage's compact bin list (terms on the bins its pairs use) changes nothing."""
-    from twoscale.fit.residuals import stage_bins, sum_squares
+    from twoscale.fit.cells import stage_bins
+    from twoscale.fit.residuals import sum_squares
 
     sel = select_cells(conductor_data)
     shuffled = pair_cells(sel.fit)
@@ -211,13 +214,13 @@ def test_same_solution():
     jtj = np.diag([100.0, 1.0])
 
     def cand(y):
-        return _Candidate("c", 0, jnp.asarray(y), rr=10.0, jtj=jtj, m=12)
+        return Candidate("c", 0, jnp.asarray(y), rr=10.0, jtj=jtj, m=12)
 
     # σ² = rr/(m − n) = 1: distance² = δᵀ JᵀJ δ.
     a = cand([0.0, 0.0])
-    assert _same_solution(a, cand([0.04, 0.0]))  # 0.4 SE
-    assert not _same_solution(a, cand([0.06, 0.0]))  # 0.6 SE
-    assert _same_solution(a, cand([0.0, 0.4]))
-    assert not _same_solution(a, cand([0.0, 0.6]))
-    assert not _same_solution(a, _Candidate("d", 1, jnp.zeros(2), rr=10.0, jtj=jtj, m=12))
-    assert not _same_solution(a, cand([np.nan, 0.0]))
+    assert same_solution(a, cand([0.04, 0.0]))  # 0.4 SE
+    assert not same_solution(a, cand([0.06, 0.0]))  # 0.6 SE
+    assert same_solution(a, cand([0.0, 0.4]))
+    assert not same_solution(a, cand([0.0, 0.6]))
+    assert not same_solution(a, Candidate("d", 1, jnp.zeros(2), rr=10.0, jtj=jtj, m=12))
+    assert not same_solution(a, cand([np.nan, 0.0]))

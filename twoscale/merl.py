@@ -53,6 +53,7 @@ __all__ = [
     "angles_to_bin",
     "grid_angles",
     "grid_directions",
+    "bihemispherical_albedo",
     "valid_geometric",
     "read",
     "write",
@@ -192,6 +193,30 @@ def _grid_cosines(convention: str):
     a = np.cos(th) * np.cos(td)
     b = np.sin(th) * np.sin(td) * np.cos(pd)
     return a - b, a + b
+
+
+def bihemispherical_albedo(values, valid) -> np.ndarray:
+    """``(C,)``: ``(1/π) ∫∫ ρ cos θ_i cos θ_o dω_i dω_o`` of a ``(90, 90, 180, C)`` table over its
+    valid cells (the white-sky albedo, in [0, 1] for an energy-conserving BRDF).
+
+    Each cell stands for its bin (midpoint rule at the lower-edge directions, the measure
+    ``dω_i dω_o = 4 cos θ_d dω_h dω_d`` with ``dω_h = sin θ_h dθ_h dφ_h`` integrated over φ_h,
+    bin widths from the θ_h bin edges; the table's φ_d ∈ [0, π) stands for [0, 2π) by
+    reciprocity); invalid cells count as 0. A Lambertian table of albedo ρ with every cell valid
+    gives 1.048 ρ (the quadrature's accuracy).
+    """
+    edges_h = (np.arange(N_THETA_H + 1) / N_THETA_H) ** 2 * (np.pi / 2)
+    mid_h = 0.5 * (edges_h[:-1] + edges_h[1:])
+    d_d = np.pi / 2 / N_THETA_D
+    mid_d = (np.arange(N_THETA_D) + 0.5) * d_d
+    measure = (
+        (np.sin(mid_h) * np.diff(edges_h))[:, None, None]
+        * (4.0 * np.cos(mid_d) * np.sin(mid_d) * d_d)[None, :, None]
+        * (2.0 * np.pi * (2.0 * np.pi / N_PHI_D))  # φ_h; φ_d over [0, 2π) by reciprocity
+    )
+    cos_i, cos_o = _grid_cosines("lower")
+    w = np.where(np.asarray(valid) & (cos_i > 0) & (cos_o > 0), cos_i * cos_o * measure, 0.0)
+    return np.einsum("hdp,hdpc->c", w, np.asarray(values, dtype=np.float64)) / np.pi
 
 
 def valid_geometric(convention: str = "lower") -> np.ndarray:

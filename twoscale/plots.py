@@ -46,12 +46,12 @@ def _save(fig, path, title: str = "") -> Path:
 def model_function(adapter, params, *, lobes: bool = False):
     """``f(wi, wo) -> ndarray (..., C)`` evaluating a fitted model (NumPy in and out).
 
-    Evaluation goes through :func:`twoscale.fit.driver.evaluate_at` (one compiled function per
+    Evaluation goes through :func:`twoscale.fit.evaluation.evaluate_at` (one compiled function per
     model configuration, shared with the fit). With ``lobes=True`` (two-scale model only) the
     function returns ``{lobe: (..., C)}``.
     """
     from twoscale.fit.adapters import LOBES
-    from twoscale.fit.driver import evaluate_at
+    from twoscale.fit.evaluation import evaluate_at
 
     n_ch = adapter.config.n_channels
 

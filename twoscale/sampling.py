@@ -45,7 +45,8 @@ Half-vector densities map to ``wo`` by ``pdf_wo = pdf_h / (4 |wo·h|)``.
 the output channels with ``(lum_c + 1/C)/2``. The albedos are computed per call (per parameter
 set) by the half-vector quadrature of :func:`twoscale.model.albedo` applied to each lobe of
 :func:`twoscale.model.lobes`, coarsened (4 Gauss nodes per θ_h panel, 8 in φ), at 9 incidence
-cosines, and interpolated linearly in ``cos θ_i`` (clamped outside). The same function of
+cosines (with the table path, whatever ``config.path``), and interpolated linearly in
+``cos θ_i`` (clamped outside). The same function of
 ``(params, cos θ_i)`` serves :func:`sample` and :func:`pdf`, so the weights agree exactly. If
 every lobe has zero albedo, the lobes are weighted equally. Measured on eight materials (rough
 to mirror-like, p from 0.2 to 5, weak to strong diffraction, a plastic): the coarse albedos are
@@ -71,6 +72,7 @@ References:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import NamedTuple
@@ -173,7 +175,10 @@ class _Weights(eqx.Module):
 
 
 def _lobe_weights(params, cfg: ModelConfig, dtype) -> _Weights:
-    parts = _lobe_albedos(params, jnp.asarray(WEIGHT_COS, dtype), cfg, 4, 8, dtype)
+    # The table path even for path="exact": weights need not be exact, and the exact lobe costs
+    # a 2-D quadrature per node.
+    fast = dataclasses.replace(cfg, path="tables")
+    parts = _lobe_albedos(params, jnp.asarray(WEIGHT_COS, dtype), fast, 4, 8, dtype)
     names = tuple(n for n in LOBES if n in parts)
     cw = jnp.asarray(_output_weights(cfg), dtype)
     alb = jnp.stack([jnp.maximum(parts[n], 0.0) @ cw for n in names], axis=-1)

@@ -6,30 +6,16 @@
 
 import sys
 
-from twoscale.fit.driver import (
-    DEFAULT_SCHEDULE as DEFAULT_SCHEDULE,
-)
-from twoscale.fit.driver import (
-    PREVIEW_SCHEDULE as PREVIEW_SCHEDULE,
-)
-from twoscale.fit.driver import (
-    FitError as FitError,
-)
-from twoscale.fit.driver import (
-    Stage as Stage,
-)
-from twoscale.fit.driver import (
-    fit as fit,
-)
-from twoscale.fit.driver import (
-    merl_protocol as merl_protocol,
-)
-from twoscale.fit.driver import (
-    predict_cells as predict_cells,
-)
+from twoscale.fit.cells import select_cells as select_cells
+from twoscale.fit.driver import FitError as FitError
+from twoscale.fit.driver import fit as fit
+from twoscale.fit.evaluation import predict_cells as predict_cells
+from twoscale.fit.material_type import merl_protocol as merl_protocol
 from twoscale.fit.record import FitResult as FitResult
 from twoscale.fit.record import load_result as load_result
-from twoscale.fit.residuals import select_cells as select_cells
+from twoscale.fit.schedule import DEFAULT_SCHEDULE as DEFAULT_SCHEDULE
+from twoscale.fit.schedule import PREVIEW_SCHEDULE as PREVIEW_SCHEDULE
+from twoscale.fit.schedule import Stage as Stage
 from twoscale.fit.synthetic import EXAMPLE as EXAMPLE
 from twoscale.fit.synthetic import synthetic as synthetic
 

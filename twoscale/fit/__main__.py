@@ -242,7 +242,8 @@ def _run(args, log) -> int:
         if where is not None:
             log(f"compilation cache: {where}")
     from twoscale.baselines import CookTorranceConfig
-    from twoscale.fit.driver import FitError, fit, merl_protocol
+    from twoscale.fit.driver import FitError, fit
+    from twoscale.fit.material_type import merl_protocol
 
     t0 = time.perf_counter()
     truth = None

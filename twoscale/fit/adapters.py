@@ -1,13 +1,17 @@
-"""Model adapters: one small interface for every BRDF the driver can fit.
+"""Model adapters: one interface for every BRDF the driver can fit.
 
-An adapter is a frozen (hashable) dataclass holding the model's static configuration and
-providing:
+:class:`AbstractAdapter` (an equinox abstract class; the concrete adapters are final) says what
+the driver needs of a model under a fixed static configuration:
 
 - ``evaluate(params, wi, wo) -> (..., C)``: the BRDF without the cosine (1/sr);
+- ``evaluate_grid(params, convention)``: the same on the whole MERL grid, ``(90, 90, 180, C)``;
 - ``to_unconstrained(params)`` / ``from_unconstrained(u)``: the bijection to unconstrained space;
 - ``starts(stats) -> list[(label, params)]``: initial guesses placed with :class:`DataStats`;
 - ``params_to_dict`` / ``params_from_dict`` and ``config_to_dict``: the JSON record;
-- ``field_names``: the parameter fields this configuration uses (for ``fixed=`` and errors).
+- ``field_names``, ``separable_fields``, ``diffraction``: what the fit's layout, Jacobian
+  colouring and nested starts need;
+- ``factorised``: whether the model also splits into per-bin terms and a per-cell part
+  (``bin_terms``, ``evaluate_cells``), which the fit's passes then use.
 
 :class:`TwoScaleAdapter` wraps :func:`twoscale.brdf` with a :class:`twoscale.ModelConfig`;
 :class:`CookTorranceAdapter` the baseline of :mod:`twoscale.baselines`.
@@ -15,10 +19,13 @@ providing:
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import itertools
 import math
+from typing import ClassVar
 
+import equinox as eqx
 import numpy as np
 
 from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
@@ -37,8 +44,68 @@ START_E = 0.5
 LOBES = ("specular", "diffraction", "diffuse")
 
 
-@dataclasses.dataclass(frozen=True)
-class CookTorranceAdapter:
+class AbstractAdapter(eqx.Module):
+    """What the driver needs of a model under a fixed (static, hashable) configuration."""
+
+    config: eqx.AbstractVar[object]
+    #: The model splits into per-(θ_h, θ_d)-bin terms and a per-cell part (``bin_terms``,
+    #: ``evaluate_cells``), which the fit's passes use.
+    factorised: ClassVar[bool] = False
+
+    @property
+    @abc.abstractmethod
+    def name(self) -> str:
+        """The model's name in the record (``"two-scale"``, ``"ggx"``, ...)."""
+
+    @property
+    @abc.abstractmethod
+    def material(self) -> str:
+        """The material type (``"conductor"``, ``"plastic"``, ... or ``"baseline"``)."""
+
+    @property
+    @abc.abstractmethod
+    def field_names(self) -> tuple[str, ...]:
+        """The parameter fields this configuration uses (for ``fixed=`` and errors)."""
+
+    @property
+    @abc.abstractmethod
+    def separable_fields(self) -> tuple[str, ...]:
+        """Per-channel fields whose element c changes output channel c only (Jacobian colouring)."""
+
+    @property
+    def diffraction(self) -> bool:
+        """The model has a diffraction lobe (so it has a diffraction-off special case)."""
+        return False
+
+    @abc.abstractmethod
+    def evaluate(self, params, wi, wo):
+        """The BRDF without the cosine (1/sr) at unit directions, ``(..., C)``."""
+
+    @abc.abstractmethod
+    def evaluate_grid(self, params, convention: str = "lower"):
+        """The BRDF on the whole MERL grid, ``(90, 90, 180, C)``."""
+
+    @abc.abstractmethod
+    def to_unconstrained(self, params): ...
+
+    @abc.abstractmethod
+    def from_unconstrained(self, u): ...
+
+    @abc.abstractmethod
+    def params_to_dict(self, params) -> dict: ...
+
+    @abc.abstractmethod
+    def params_from_dict(self, d: dict): ...
+
+    @abc.abstractmethod
+    def config_to_dict(self) -> dict: ...
+
+    @abc.abstractmethod
+    def starts(self, stats: DataStats) -> list[tuple[str, object]]:
+        """Initial guesses ``[(label, params)]`` placed from the data's summary numbers."""
+
+
+class CookTorranceAdapter(AbstractAdapter):
     """Cook-Torrance (GGX or Beckmann) + Lambert baseline."""
 
     config: CookTorranceConfig = CookTorranceConfig()
@@ -56,10 +123,18 @@ class CookTorranceAdapter:
         return self.config.param_names
 
     #: Per-channel fields whose element c changes output channel c only (Jacobian colouring).
-    separable_fields = ("f0", "rho_d")
+    separable_fields: ClassVar[tuple[str, ...]] = ("f0", "rho_d")
 
     def evaluate(self, params, wi, wo):
         return cook_torrance(params, wi, wo, self.config)
+
+    def evaluate_grid(self, params, convention: str = "lower"):
+        from twoscale.fit.evaluation import evaluate_at
+        from twoscale.merl import SHAPE, grid_directions
+
+        wi, wo = grid_directions(convention)
+        out = evaluate_at(self.evaluate, params, wi, wo, self.config.n_channels)
+        return out.reshape(*SHAPE, self.config.n_channels)
 
     def to_unconstrained(self, params):
         return params.to_unconstrained()
@@ -110,11 +185,15 @@ def sigma_s_for_a_spec(a_spec: float, b: float, c: float, wavelength: float) -> 
     return wavelength * math.sqrt(-math.log(a_spec)) / (4.0 * math.pi * math.sqrt(r0))
 
 
-@dataclasses.dataclass(frozen=True)
-class TwoScaleAdapter:
+class TwoScaleAdapter(AbstractAdapter):
     """The two-scale model :func:`twoscale.brdf` under a fixed :class:`twoscale.ModelConfig`."""
 
     config: object  # twoscale.ModelConfig (hashable)
+    factorised: ClassVar[bool] = True
+
+    @property
+    def diffraction(self) -> bool:
+        return bool(self.config.diffraction)
 
     @property
     def name(self) -> str:
@@ -243,16 +322,12 @@ class TwoScaleAdapter:
                     else TwoScaleParams.subsurface
                 )
                 params = make(beta, p, eta, rho_d, **extra)
-            if hasattr(params, "for_config"):
-                params = params.for_config(cfg)
-            out.append((label, params))
+            out.append((label, params.for_config(cfg)))
         return out
 
 
 def config_to_dict(config) -> dict:
-    """JSON-friendly dict of a (dataclass-like) model configuration."""
-    if hasattr(config, "to_dict"):
-        return dict(config.to_dict())
+    """JSON-friendly dict of a :class:`twoscale.ModelConfig`."""
     out = {}
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)
@@ -261,21 +336,22 @@ def config_to_dict(config) -> dict:
 
 
 def config_from_dict(d: dict):
-    """Rebuild a configuration saved by :func:`config_to_dict` (two-scale or baseline)."""
+    """Rebuild a configuration saved by an adapter's ``config_to_dict`` (two-scale or baseline).
+
+    Fields a record does not have take their defaults (records written before a field existed).
+    """
     d = dict(d)
     model = d.pop("model", "two-scale")
     if model == "cook-torrance":
         return CookTorranceConfig.from_dict(d)
     from twoscale.config import ModelConfig
 
-    if hasattr(ModelConfig, "from_dict"):
-        return ModelConfig.from_dict(d)
     names = {f.name for f in dataclasses.fields(ModelConfig)}
     kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
     return ModelConfig(**kwargs)
 
 
-def adapter_for(config):
+def adapter_for(config) -> AbstractAdapter:
     """The adapter for a configuration object."""
     if isinstance(config, CookTorranceConfig):
         return CookTorranceAdapter(config)

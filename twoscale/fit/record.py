@@ -137,13 +137,8 @@ class FitResult:
         """The fitted BRDF on the whole MERL grid, ``(90, 90, 180, C)`` in 1/sr (``convention``:
         ``"lower"`` bin edges, as the fit's cells, or ``"centre"``)."""
         from twoscale.fit.adapters import adapter_for
-        from twoscale.merl import grid_directions
 
-        adapter = adapter_for(self.model_config)
-        if hasattr(adapter, "evaluate_grid"):
-            return adapter.evaluate_grid(self.params, convention)
-        wi, wo = grid_directions(convention)
-        return adapter.evaluate(self.params, wi, wo)
+        return adapter_for(self.model_config).evaluate_grid(self.params, convention)
 
     def to_dict(self) -> dict:
         params = self.params_dict

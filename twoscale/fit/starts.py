@@ -6,6 +6,8 @@ lower-edge bin angles ``θ_h(i) = (i/90)² π/2``, ``θ_d(j) = j π/180``):
 - ``peak``: the mean measured value at ``θ_h = 0`` for ``θ_d ≤ 4°`` (per channel);
 - ``floor``: the median value over ``θ_h ∈ [50°, 70°]``, ``θ_d ≤ 30°`` (the diffuse level of a
   dielectric, the far tail of a conductor);
+- ``albedo``: the bihemispherical albedo over the valid cells
+  (:func:`twoscale.merl.bihemispherical_albedo`): how much light the material reflects in all;
 - ``width``: the ``θ_h`` (rad) where the luminance profile above the floor, averaged over
   ``θ_d ≤ 4°`` and all ``φ_d``, falls to ``1/e`` of its peak. For the EPD this is where
   ``(tan²θ_h/β²)^p = 1``, so ``β ≈ tan(width)`` whatever ``p``.
@@ -18,6 +20,8 @@ import math
 
 import numpy as np
 
+from twoscale.merl import bihemispherical_albedo
+
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -28,6 +32,7 @@ class DataStats:
     peak: np.ndarray  # (C,) 1/sr
     floor: np.ndarray  # (C,) 1/sr
     width: float  # rad
+    albedo: np.ndarray | None = None  # (C,) bihemispherical albedo over the valid cells
 
     @property
     def beta(self) -> float:
@@ -39,6 +44,7 @@ class DataStats:
             "peak": [float(x) for x in self.peak],
             "floor": [float(x) for x in self.floor],
             "width_rad": float(self.width),
+            "albedo": None if self.albedo is None else [float(x) for x in self.albedo],
         }
 
 
@@ -86,7 +92,12 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
                 width = float(theta_h[i - 1] + t * (theta_h[i] - theta_h[i - 1]))
                 break
     width = max(width, 0.5 * float(theta_h[1]))
-    return DataStats(peak=np.maximum(peak, 0.0), floor=np.maximum(floor, 0.0), width=width)
+    return DataStats(
+        peak=np.maximum(peak, 0.0),
+        floor=np.maximum(floor, 0.0),
+        width=width,
+        albedo=bihemispherical_albedo(values, valid),
+    )
 
 
 def floor_level(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.residuals import Cells
+from twoscale.fit.cells import Cells
 
 #: Parameters of the ``--example`` material: a rough gold-like conductor with a diffraction halo,
 #: measured through MERL's apparatus (``e``: the grazing fall-off of the specular lobe).
@@ -47,7 +47,7 @@ def synthetic(
         seed: seed of the noise and of the dropout.
     """
     from twoscale import merl
-    from twoscale.fit.driver import predict_cells
+    from twoscale.fit.evaluation import predict_cells
 
     shape = (90, 90, 180)
     blank = merl.MerlData(

@@ -1,0 +1,182 @@
+"""Candidates: the starts that travel through the schedule, their bookkeeping (which minimum
+each reached, which go on), fixed parameters, and the full model's starts from its special case.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twoscale.fit.adapters import adapter_for
+from twoscale.fit.residuals import Layout
+from twoscale.fit.schedule import Stage
+
+
+@dataclasses.dataclass
+class Candidate:
+    """One start travelling through the schedule."""
+
+    label: str
+    group: int  # index into the list of groups (configuration, free-parameter layout)
+    y: jax.Array
+    cost: float = math.inf  # RMS of the residuals on the last stage's cells
+    steps: int = 0
+    status: str = "not run"
+    success: bool = False
+    rr: float = math.nan  # rᵀr at y on the last stage's cells
+    jtj: np.ndarray | None = None  # JᵀJ at y on the last stage's cells
+    m: int = 0  # residuals in that stage
+    nested: bool = False  # the nested start: carried through every stage (see fit(nested=...))
+    moves: int = 0  # accepted solver steps so far
+
+
+#: Two solutions closer than this many standard errors are the same minimum (see :func:`fit`).
+DUPLICATE_SE = 0.5
+
+
+def same_solution(a: Candidate, b: Candidate, tol: float = DUPLICATE_SE) -> bool:
+    """Are ``a`` and ``b`` (same group, same stage) within ``tol`` standard errors of each other?
+
+    The distance is measured with ``a``'s Gauss-Newton matrix and residual variance:
+    ``δᵀ JᵀJ δ / σ²`` with ``δ = y_a − y_b`` and ``σ² = rᵀr/(m − n)``, the squared length of
+    ``δ`` in standard errors along the best-determined and worst-determined directions alike.
+    """
+    if a.group != b.group or a.jtj is None or a.y.shape != b.y.shape:
+        return False
+    n = int(a.y.shape[0])
+    d = np.asarray(a.y) - np.asarray(b.y)
+    if n == 0 or not np.all(np.isfinite(d)):
+        return n == 0
+    sigma2 = a.rr / max(a.m - n, 1)
+    if not (math.isfinite(sigma2) and sigma2 > 0.0):
+        return False
+    dist2 = float(d @ np.asarray(a.jtj) @ d) / sigma2
+    return dist2 < tol * tol
+
+
+@dataclasses.dataclass
+class Group:
+    adapter: object
+    spec: object
+    frozen: object
+    layout: Layout
+
+
+#: A_spec(0) of the diffraction lobe added to the nested start (weak, but with a non-zero
+#: gradient in σ_s: at σ_s = 0 exactly, ∂A_s/∂σ_s = 0 and the solver could not leave it).
+NESTED_A_SPEC = 0.95
+
+
+NESTED_LABEL = "nested"
+
+
+#: The other full-model starts from the special case: ``(c, A_spec(0), b µm)``. A diffraction
+#: lobe carrying 70 % or 30 % of the specular energy at normal incidence with a halo of
+#: half-width ≈ 15° (b = 1 µm); a strong lobe (A_spec(0) = 0.05, 95 % of the energy) with a
+#: narrow core and a power-law tail (b = 30 µm), the basin of sharp highlights that widen towards
+#: grazing θ_d (phenolics, plastics: the winning start on 4 of 8 stand-ins tried); and a strong,
+#: wide lobe (b = 0.3 µm). Starts that end in the same minimum are dropped after the first stage.
+NESTED_GRID = (
+    (1.5, 0.3, 1.0),
+    (2.5, 0.7, 1.0),
+    (1.5, 0.05, 30.0),
+    (1.5, 0.05, 0.3),
+)
+
+
+def nested_starts(params, cfg, fixed: dict) -> list[tuple[str, object]]:
+    """Starts of the full model ``cfg`` from the fit of its diffraction-off special case.
+
+    The specular parameters (β, p, η, k or ρ_d, e) are those of the special case's fit; the
+    nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
+    itself, with a weak diffraction lobe whose gradient is not 0) and the points of
+    :data:`NESTED_GRID`.
+    """
+    from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
+
+    wl = float(np.median(np.asarray(cfg.wavelengths)))
+    out = []
+    for label, a_spec, c, b in [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
+        (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b)
+        for c, a, b in NESTED_GRID
+    ]:
+        c = float(fixed.get("c", c))
+        b = float(fixed.get("b", b))
+        sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(a_spec, b, c, wl)))
+        out.append((label, params.replace(sigma_s=sigma_s, b=b, c=c).for_config(cfg)))
+    return out
+
+
+def apply_fixed(params, fixed: dict, adapter):
+    """Set the fixed fields (physical values) and return (params, spec of free leaves)."""
+    spec = jax.tree_util.tree_map(lambda _: True, params)
+    for name, value in fixed.items():
+        if name not in adapter.field_names:
+            raise ValueError(
+                f"cannot fix {name!r}: parameters of this model are {', '.join(adapter.field_names)}"
+            )
+        current = getattr(params, name)
+        if current is None:
+            raise ValueError(f"cannot fix {name!r}: this configuration does not use it")
+        new = jnp.broadcast_to(jnp.asarray(value, dtype=jnp.float64), jnp.shape(current))
+        params = eqx.tree_at(lambda p, n=name: getattr(p, n), params, new)
+        spec = eqx.tree_at(lambda s, n=name: getattr(s, n), spec, False)
+    return params, spec
+
+
+def make_candidates(configs, start_lists, fixed: dict):
+    """Groups (one per configuration) and their candidates from ``[(label, params)]`` lists."""
+    groups: list[Group] = []
+    cands: list[Candidate] = []
+    for cfg, start_list in zip(configs, start_lists, strict=True):
+        adapter = adapter_for(cfg)
+        group = None
+        for label, p0 in start_list:
+            p0, spec = apply_fixed(p0, fixed, adapter)
+            free, frozen = eqx.partition(adapter.to_unconstrained(p0), spec)
+            layout = Layout.of(free)
+            if group is None:
+                group = Group(adapter, spec, frozen, layout)
+                groups.append(group)
+            elif layout != group.layout:
+                raise ValueError("all starts must have the same parameter structure")
+            cands.append(
+                Candidate(
+                    f"{adapter.material} {label}",
+                    len(groups) - 1,
+                    layout.ravel(free),
+                    nested=label.startswith(NESTED_LABEL),
+                )
+            )
+    return groups, cands
+
+
+def keep_best(cands, groups, stage: Stage, last: bool):
+    """The best ``stage.keep`` *distinct* solutions per group (and the nested start, unless
+    ``last``: the next stage is the last), and ``{dropped label: label of the better twin}``."""
+    finite = [c for c in cands if math.isfinite(c.cost)]
+    kept, duplicates = [], {}
+    for gi in range(len(groups)):
+        mine = sorted((c for c in finite if c.group == gi), key=lambda c: c.cost)
+        chosen: list[Candidate] = []
+        for c in mine:
+            # A solution within DUPLICATE_SE standard errors of a better kept one is the same
+            # minimum reached from another start: dropped, so no minimum is refined twice.
+            twin = next((k for k in chosen if same_solution(k, c)), None)
+            if twin is not None:
+                duplicates[c.label] = twin.label
+                continue
+            # The nested start goes on even when a subsample ranks it lower, so that a later
+            # stage compares it with the others on more cells.
+            if last:
+                if len(chosen) < stage.keep:
+                    chosen.append(c)
+            elif sum(not k.nested for k in chosen) < stage.keep or c.nested:
+                chosen.append(c)
+        kept.extend(chosen)
+    return kept, duplicates

@@ -1,0 +1,173 @@
+"""Evaluating a fit: model values at cells, RMSE of both metrics, standard errors, warnings."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from twoscale.fit.candidates import Candidate, Group
+from twoscale.fit.cells import CHUNK, DIRECTION_CHUNKS, pack_directions
+from twoscale.fit.residuals import Problem, predict
+
+
+@eqx.filter_jit
+def jit_predict(fn, params, data, n_active, n_out):
+    return predict(fn, params, data, n_active, n_out)
+
+
+@eqx.filter_jit
+def physical_free(problem, y, frozen, spec):
+    """Flat physical values of the free parameters, and their Jacobian in ``y``."""
+
+    def phys(yy):
+        params = problem.params(yy, frozen)
+        free, _ = eqx.partition(params, spec)
+        leaves = jax.tree_util.tree_leaves(free)
+        return jnp.concatenate([jnp.ravel(x) for x in leaves])
+
+    return phys(y), jax.jacfwd(phys)(y)
+
+
+def rmse(pred: np.ndarray, cells) -> dict:
+    """RMSE of both metrics, overall and per channel, for predictions on ``cells``."""
+    cos = cells.cos_i[:, None]
+    lin = (pred - cells.rho) * cos
+    log = np.log1p(np.maximum(pred, 0.0) * cos) - np.log1p(cells.rho * cos)
+    return {
+        "rmse_linear": float(np.sqrt(np.mean(lin**2))),
+        "rmse_log": float(np.sqrt(np.mean(log**2))),
+        "per_channel": {
+            "rmse_linear": np.sqrt(np.mean(lin**2, axis=0)).tolist(),
+            "rmse_log": np.sqrt(np.mean(log**2, axis=0)).tolist(),
+        },
+    }
+
+
+def rmse_within(pred: np.ndarray, cells, max_theta_deg: float = 80.0) -> dict | None:
+    """:func:`rmse` on the cells with ``θ_i, θ_o ≤ max_theta_deg`` (None if there is none)."""
+    ok = cells.within(max_theta_deg)
+    if not ok.any():
+        return None
+    e = rmse(pred[ok], cells.take(np.flatnonzero(ok)))
+    return {"log": e["rmse_log"], "linear": e["rmse_linear"], "n_cells": int(ok.sum())}
+
+
+def predict_cells(adapter, params, cells) -> np.ndarray:
+    """Model values ``(N, C)`` at the cells (one compiled pass per model configuration).
+
+    Factorised adapters (the two-scale model) evaluate the whole MERL grid by its fast path
+    (:func:`twoscale.model.brdf_grid`) and take the cells from it; the others go through the
+    fixed-shape direction buffer.
+    """
+    if adapter.factorised:
+        grid = np.asarray(adapter.evaluate_grid(params, "lower"))
+        return grid.reshape(-1, grid.shape[-1])[np.asarray(cells.index)]
+    return evaluate_at(adapter.evaluate, params, cells.wi, cells.wo, adapter.config.n_channels)
+
+
+def evaluate_at(fn, params, wi, wo, n_out: int) -> np.ndarray:
+    """``fn(params, wi, wo) -> (N, n_out)`` at NumPy directions ``(N, 3)``, through the
+    fixed-shape buffer (so every call with the same ``fn`` shares one compiled function)."""
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    n = wi.shape[0]
+    cap = DIRECTION_CHUNKS * CHUNK
+    out = []
+    for start in range(0, max(n, 1), cap):
+        sl = slice(start, min(start + cap, n))
+        buf, n_active = pack_directions(wi[sl], wo[sl])
+        pred = np.asarray(jit_predict(fn, params, buf, jnp.int32(n_active), n_out))
+        out.append(pred.reshape(-1, n_out)[: wi[sl].shape[0]])
+    return np.concatenate(out, axis=0)
+
+
+def standard_errors(group: Group, problem: Problem, cand: Candidate) -> tuple[dict, dict]:
+    """Standard errors ``σ² (JᵀJ)⁺`` at the solution, mapped to physical units (delta method)."""
+    n = int(cand.y.shape[0])
+    names = group.adapter.field_names
+    if n == 0:
+        return {k: None for k in names}, {"method": "none", "note": "every parameter fixed"}
+    jtj = np.asarray(cand.jtj)
+    dof = max(cand.m - n, 1)
+    sigma2 = float(cand.rr) / dof
+    # Scale to unit diagonal before the eigen-decomposition: rank is judged on correlations.
+    d = np.sqrt(np.maximum(np.diag(jtj), 0.0))
+    d_safe = np.where(d > 0, d, 1.0)
+    corr = jtj / np.outer(d_safe, d_safe)
+    evals, evecs = np.linalg.eigh(corr)
+    keep = evals > 1e-10 * max(evals.max(), np.finfo(float).tiny)
+    rank = int(keep.sum())
+    inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
+    cov_u = sigma2 * inv / np.outer(d_safe, d_safe)
+    _, jac = physical_free(problem, cand.y, group.frozen, group.spec)
+    jac = np.asarray(jac)
+    cov_p = jac @ cov_u @ jac.T
+    se_flat = np.sqrt(np.maximum(np.diag(cov_p), 0.0))
+    std = by_name(group, se_flat)
+    info = {
+        "method": "sigma^2 (J^T J)^+ at the solution (unconstrained space), "
+        "delta method to physical units",
+        "sigma2": sigma2,
+        "dof": dof,
+        "n_free": n,
+        "rank": rank,
+        "rank_deficient": rank < n,
+        "condition": float(evals.max() / max(evals.min(), np.finfo(float).tiny)),
+    }
+    if rank < n:
+        # Which parameters span the (near) null space: the large components of its eigenvectors.
+        null = by_name(group, np.abs(evecs[:, ~keep]).max(axis=1))
+        weak = [k for k, v in null.items() if v is not None and np.max(v) > 0.3]
+        info["note"] = (
+            f"Jacobian rank {rank} < {n} free parameters: pseudo-inverse used; "
+            f"{', '.join(weak) or 'some parameters'} not determined by the data "
+            "(their errors are unreliable)"
+        )
+    return std, info
+
+
+def by_name(group: Group, flat) -> dict:
+    """Flat values over the free leaves → ``{field: float | list | None}``."""
+    tree = group.layout.unravel(jnp.asarray(flat))
+    out = {}
+    for name in group.adapter.field_names:
+        leaf = getattr(tree, name, None)
+        if leaf is None:
+            out[name] = None
+        else:
+            arr = np.asarray(leaf)
+            out[name] = float(arr) if arr.ndim == 0 else arr.tolist()
+    return out
+
+
+#: A parameter whose unconstrained value exceeds this in magnitude is within 0.1 % of an end of
+#: its range (the sigmoid maps ±6.9 to 0.001 and 0.999).
+AT_BOUND_U = 6.9
+
+
+def fit_warnings(group: Group, cand: Candidate, params, cov_info: dict) -> list[str]:
+    """One line per problem of a usable fit: step limit, parameters at a bound, rank deficiency."""
+    out = []
+    if not cand.success:
+        out.append(f"not converged: {cand.status} after {cand.steps} steps (result kept)")
+    y = np.asarray(cand.y)
+    values = group.adapter.params_to_dict(params)
+    start = 0
+    for name, shape, size in zip(
+        group.layout.names, group.layout.shapes, group.layout.sizes, strict=True
+    ):
+        u = y[start : start + size]
+        start += size
+        vals = np.ravel(np.asarray(values.get(name), dtype=np.float64))
+        for j in np.flatnonzero(np.abs(u) > AT_BOUND_U):
+            which = f"{name}[{j}]" if shape else name
+            side = "lower" if u[j] < 0 else "upper"
+            v = vals[j] if vals.size > j else math.nan
+            out.append(f"{which} = {v:.4g} is at the {side} end of its range")
+    if cov_info.get("rank_deficient"):
+        out.append(cov_info.get("note", "rank-deficient Jacobian"))
+    return out

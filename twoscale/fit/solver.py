@@ -1,0 +1,254 @@
+"""One stage's solves: an optimistix least-squares solver with the fit's stopping rules, run in
+rounds on the compressed residuals of a fixed-shape cell buffer (docs/model.md §8).
+
+:func:`refine` takes one candidate through one stage; :func:`solve` is the compiled solve (one
+per model configuration and buffer shape, shared by every start and stage).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from twoscale.fit.candidates import Candidate, Group
+from twoscale.fit.residuals import Problem, compressed_residuals, sum_squares
+from twoscale.fit.schedule import Stage
+
+#: Solver tolerances: optimistix's Cauchy test (on the scaled parameters and the compressed
+#: residual, RMS norm), and the standard-error test of :func:`small_step` (either one stops).
+RTOL = 1e-7
+
+
+ATOL = 1e-9
+
+
+SE_TOL = 0.05
+
+
+#: A round of ``Stage.round_steps`` solver steps that lowers the RMS by less than this fraction
+#: ends the start as converged (the RMS is stationary to the 4 digits a report shows).
+STALL_RTOL = 1e-4
+
+
+#: Static bound of the solver loop; the per-stage limit (``Stage.max_steps``) is a dynamic value,
+#: so stages with different limits share one compiled solve.
+MAX_STEPS_BOUND = 1000
+
+
+def small_step(state, options):
+    """Has the Gauss-Newton step from the last accepted point shrunk below ``se_tol`` standard errors?
+
+    With the compressed residual ``r̃ = [q, t]``, the full Gauss-Newton step ``δ`` satisfies
+    ``δᵀ JᵀJ δ = |q|²`` and the residual variance is ``σ² ≈ t²/(m − n)``, so the step measured in
+    standard errors is ``|q| √(m − n)/t``. Stopping when it is below ``se_tol`` (default 0.05)
+    ends the fit once further steps cannot change the parameters by a meaningful fraction of
+    their uncertainty — the useful notion of convergence for tens of thousands of noisy residuals.
+    """
+    r_c = state.f_info.residual
+    q2 = jnp.sum(r_c[:-1] ** 2)
+    t2 = r_c[-1] ** 2
+    dof = jnp.maximum(options["n_resid"] - (r_c.shape[0] - 1), 1)
+    small = q2 * dof < options["se_tol"] ** 2 * t2
+    return small & (state.num_accepted_steps >= 1)
+
+
+class StopRules(optx.AbstractLeastSquaresSolver):
+    """An optimistix least-squares solver with two more ways to stop: the step is negligible
+    against the standard errors (:func:`small_step`), or ``options["step_cap"]`` steps were made
+    (dynamic, unlike ``max_steps``, so stages with different limits share one compiled solve).
+
+    Everything else is the wrapped solver's: its state (whose fields ``f_info.residual``,
+    ``f_info.jac``, ``num_accepted_steps``, ``num_steps`` and ``terminate`` of optimistix's
+    Gauss-Newton family this module reads; pyproject pins optimistix to the releases checked),
+    its steps and its own termination test.
+    """
+
+    solver: optx.AbstractLeastSquaresSolver
+
+    @property
+    def rtol(self):
+        return self.solver.rtol
+
+    @property
+    def atol(self):
+        return self.solver.atol
+
+    @property
+    def norm(self):
+        return self.solver.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return self.solver.init(fn, y, args, options, f_struct, aux_struct, tags)
+
+    def step(self, fn, y, args, options, state, tags):
+        return self.solver.step(fn, y, args, options, state, tags)
+
+    def terminate(self, fn, y, args, options, state, tags):
+        terminate, result = self.solver.terminate(fn, y, args, options, state, tags)
+        stop = small_step(state, options) | (state.num_steps >= options["step_cap"])
+        return terminate | stop, result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.solver.postprocess(fn, y, aux, args, options, state, tags, result)
+
+
+def make_solver(name: str, rtol: float, atol: float):
+    """The solver ``name`` (``"lm"`` or ``"dogleg"``) with the fit's stopping rules."""
+    if name == "lm":
+        return StopRules(optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm))
+    if name == "dogleg":
+        return StopRules(optx.Dogleg(rtol=rtol, atol=atol, norm=optx.rms_norm))
+    raise ValueError(f"solver must be 'lm' or 'dogleg', got {name!r}")
+
+
+#: Initial Levenberg-Marquardt damping relative to the diagonal of JᵀJ (see :func:`scales`).
+INITIAL_DAMPING = 1e-3
+
+
+#: Largest scale of a free parameter in unconstrained units (for parameters with ~no influence).
+_MAX_SCALE = 10.0
+
+
+def scales(jtj: np.ndarray) -> np.ndarray:
+    """Per-parameter scales ``σ_j = 1/(√(JᵀJ)_jj √μ0)``: the solver works on ``z = (y − y0)/σ``.
+
+    optimistix's Levenberg-Marquardt damps with ``λ I`` and starts at ``λ = 1``; in ``z`` the
+    Gauss-Newton matrix has diagonal ``1/μ0``, so its first step has relative damping
+    ``μ0`` = :data:`INITIAL_DAMPING` whatever the units of the parameters (Marquardt's scaling).
+    """
+    d = np.sqrt(np.maximum(np.diag(np.asarray(jtj)), 0.0))
+    with np.errstate(divide="ignore"):
+        s = 1.0 / (d * math.sqrt(INITIAL_DAMPING))
+    return np.where(np.isfinite(s), np.minimum(s, _MAX_SCALE), _MAX_SCALE)
+
+
+@eqx.filter_jit
+def solve(
+    problem, y0, frozen, data, n_active, step_cap, n_resid, scale, rtol, atol, se_tol, solver_name
+):
+    """Least-squares solve from ``y0`` on the active chunks of ``data``, at most ``step_cap`` steps.
+
+    The solver works on ``z = (y − y0)/scale``. Its first step only evaluates the residuals and
+    their Jacobian at ``y0`` (so a solve of ``step_cap`` steps makes ``step_cap − 1`` moves).
+    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y0, rᵀr at y, JᵀJ at y)`` (``JᵀJ`` in ``y``,
+    from the solver's final linearisation, and ``rᵀr`` from its compressed residual: no extra
+    linearisation). ``converged``: the solver's own test or the standard-error test, not the
+    step limit.
+    """
+    solver = make_solver(solver_name, rtol, atol)
+
+    def fn(z, args):
+        return compressed_residuals(problem, y0 + scale * z, *args)
+
+    options = {"step_cap": step_cap, "n_resid": n_resid, "se_tol": se_tol}
+    sol = optx.least_squares(
+        fn,
+        solver,
+        jnp.zeros_like(y0),
+        args=(frozen, data, n_active),
+        options=options,
+        max_steps=MAX_STEPS_BOUND,
+        throw=False,
+    )
+    y = y0 + scale * sol.value
+    j_c = sol.state.f_info.jac.as_matrix() / scale[None, :]  # back to y
+    # |r̃|² = rᵀr at the last accepted point (compressed residuals).
+    rr = jnp.sum(sol.state.f_info.residual**2)
+    rr0 = sum_squares(problem, y0, frozen, data, n_active)  # a primal pass: the round's reference
+    converged = (sol.state.terminate | small_step(sol.state, options)) & (
+        sol.result == optx.RESULTS.successful
+    )
+    moves = sol.state.num_accepted_steps - 1  # accepted steps after the evaluation of y0
+    return y, sol.result, converged, sol.stats["num_steps"], moves, rr0, rr, j_c.T @ j_c
+
+
+@eqx.filter_jit
+def jit_sum_squares(problem, y, frozen, data, n_active):
+    return sum_squares(problem, y, frozen, data, n_active)
+
+
+def result_message(result) -> str:
+    for item, msg in (
+        (optx.RESULTS.successful, ""),
+        (optx.RESULTS.nonlinear_max_steps_reached, "maximum number of steps reached"),
+        (optx.RESULTS.nonlinear_divergence, "diverged"),
+        (optx.RESULTS.nonfinite, "non-finite values"),
+    ):
+        if bool(result == item):
+            return msg
+    return "linear solve failed"
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverSettings:
+    """Everything a stage's solves need besides the data and the candidate."""
+
+    metric: str
+    solver: str
+    rtol: float
+    atol: float
+    se_tol: float
+
+
+def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts):
+    """Run the solver on one candidate for one stage, in rounds (see :class:`Stage`).
+
+    Returns ``(y, rr, jtj, steps, converged, status)``; ``cand.moves`` counts the accepted
+    solver steps (0 after a stage: no step from the start lowered the cost).
+    """
+    problem = Problem(g.adapter, g.layout, opts.metric)
+    n = g.layout.size
+
+    def run(y0, cap, scale):
+        return solve(
+            problem,
+            y0,
+            g.frozen,
+            data,
+            jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
+            jnp.int32(cap),  # dynamic too
+            jnp.int32(m),
+            jnp.asarray(scale),
+            opts.rtol,
+            opts.atol,
+            opts.se_tol,
+            opts.solver,
+        )
+
+    y = cand.y
+    if n == 0:
+        rr = float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
+        return y, rr, np.zeros((0, 0)), 0, True, "every parameter fixed"
+    if cand.jtj is None:
+        # A solve of one step only linearises at y: JᵀJ for the scales (Marquardt's scaling).
+        *_, jtj = run(y, 1, np.ones(n))
+        jtj = np.asarray(jtj)
+    else:
+        jtj = np.asarray(cand.jtj) * (m / max(cand.m, 1))  # JᵀJ grows with m
+    steps, rr = 0, math.nan
+    while steps < stage.max_steps:
+        # At least 2: the first step of a solve only evaluates its starting point.
+        cap = max(2, min(stage.round_steps, stage.max_steps - steps))
+        y_new, res, conv, k, moves, rr0, rr_new, jtj_new = run(y, cap, scales(jtj))
+        rr0, rr_new = float(rr0), float(rr_new)
+        msg = result_message(res)
+        steps += int(k)
+        cand.moves += int(moves)
+        if not (math.isfinite(rr_new) and np.all(np.isfinite(np.asarray(y_new)))):
+            return y, rr, jtj, steps, False, msg or "non-finite values"
+        fell = (rr0 - rr_new) / rr0 if math.isfinite(rr0) and rr0 > 0 else math.inf
+        y, rr, jtj = y_new, rr_new, np.asarray(jtj_new)
+        if bool(conv):
+            return y, rr, jtj, steps, True, "converged"
+        if msg and res != optx.RESULTS.nonlinear_max_steps_reached:
+            return y, rr, jtj, steps, False, msg
+        # RMS relative change ≈ half the relative change of rᵀr; a round whose steps were all
+        # rejected says nothing (the damping was still growing).
+        if int(moves) > 0 and 0.5 * fell < STALL_RTOL:
+            return y, rr, jtj, steps, True, f"converged (RMS changed < {STALL_RTOL:g} in a round)"
+    return y, rr, jtj, steps, False, "step limit reached"
