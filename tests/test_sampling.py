@@ -147,6 +147,29 @@ def _bin_probabilities(params, cfg, wi, n_samples, max_level=10, mirror_width=1e
     return prob
 
 
+def _chi2(params, cfg, wi, wo, pdf):
+    """χ² test of samples ``(wo, pdf)`` against the cubature of ``pdf``: ``(p-value, bins, ∫pdf,
+    fraction of samples below the horizon)``."""
+    n = len(pdf)
+    valid = pdf > 0.0
+    ic = np.clip((wo[valid, 2] * N_COS).astype(int), 0, N_COS - 1)
+    phi = np.arctan2(wo[valid, 1], wo[valid, 0])
+    ip = np.clip(((phi + np.pi) / (2 * np.pi) * N_PHI).astype(int), 0, N_PHI - 1)
+    observed = np.zeros(N_COS * N_PHI)
+    np.add.at(observed, ic * N_PHI + ip, 1.0)
+    prob = _bin_probabilities(params, cfg, wi, n)
+    total = prob.sum()
+    observed = np.append(observed, (~valid).sum())
+    expected = np.append(n * prob, n * max(1.0 - total, 0.0))
+    big = expected >= 5.0
+    obs = np.append(observed[big], observed[~big].sum())
+    exp = np.append(expected[big], expected[~big].sum())
+    if exp[-1] < 5.0:  # the pooled rest is itself too small: merge it into the last bin
+        obs, exp = np.append(obs[:-2], obs[-2:].sum()), np.append(exp[:-2], exp[-2:].sum())
+    stat = float(np.sum((obs - exp) ** 2 / exp))
+    return chi2.sf(stat, len(exp) - 1), len(exp), total, 1.0 - valid.mean()
+
+
 CHI2_CASES = [
     ("rough", 0),
     ("rough", 45),
@@ -174,31 +197,13 @@ def test_sample_matches_pdf_chi2(name, theta_deg):
     """χ² goodness of fit of ``sample`` against ``pdf``; ``pdf`` integrates to 1 minus the
     fraction of samples that fall below the horizon (and to at most 1)."""
     params, cfg, wi, wo, pdf = _draw(name, theta_deg)
-    n = len(pdf)
-    valid = pdf > 0.0
-    ic = np.clip((wo[valid, 2] * N_COS).astype(int), 0, N_COS - 1)
-    phi = np.arctan2(wo[valid, 1], wo[valid, 0])
-    ip = np.clip(((phi + np.pi) / (2 * np.pi) * N_PHI).astype(int), 0, N_PHI - 1)
-    observed = np.zeros(N_COS * N_PHI)
-    np.add.at(observed, ic * N_PHI + ip, 1.0)
-    prob = _bin_probabilities(params, cfg, wi, n)
-    total = prob.sum()
-    below = 1.0 - valid.mean()
+    p_value, n_bins, total, below = _chi2(params, cfg, wi, wo, pdf)
     # ∫pdf ≤ 1, and = 1 − P(below the horizon) (binomial error of the sampled fraction).
     assert total <= 1.0 + 1e-3
-    assert abs(total + below - 1.0) <= 4.0 * math.sqrt(max(below * (1 - below), 1e-6) / n) + 2e-3
-
-    observed = np.append(observed, (~valid).sum())
-    expected = np.append(n * prob, n * max(1.0 - total, 0.0))
-    big = expected >= 5.0
-    obs = np.append(observed[big], observed[~big].sum())
-    exp = np.append(expected[big], expected[~big].sum())
-    if exp[-1] < 5.0:  # the pooled rest is itself too small: merge it into the last bin
-        obs, exp = np.append(obs[:-2], obs[-2:].sum()), np.append(exp[:-2], exp[-2:].sum())
-    stat = float(np.sum((obs - exp) ** 2 / exp))
-    p_value = chi2.sf(stat, len(exp) - 1)
-    assert len(exp) >= 8, "too few bins for a meaningful test"
-    assert p_value > 1e-3, f"χ² = {stat:.1f} on {len(exp) - 1} dof, p = {p_value:.2e}"
+    sd = math.sqrt(max(below * (1 - below), 1e-6) / len(pdf))
+    assert abs(total + below - 1.0) <= 4.0 * sd + 2e-3
+    assert n_bins >= 8, "too few bins for a meaningful test"
+    assert p_value > 1e-3, f"p = {p_value:.2e} with {n_bins} bins"
 
 
 # ------------------------------------------------------------------------------ weights
@@ -344,3 +349,49 @@ def test_albedo_table_energy_conserving_in_unit_interval():
         table = np.asarray(twoscale.albedo_table(params, 64, CONDUCTOR))
         assert np.all(table >= 0.0) and np.all(table <= 1.0), table.max()
     assert table.max() > 0.9  # the smooth, bright set comes close to (not above) 1
+
+
+# ------------------------------------------------------------------------------ other configs
+def _variant_params(cfg):
+    base = dict(beta=0.15, p=1.3, sigma_s=0.03, b=2.0, c=2.1, e=0.8)
+    if cfg.is_conductor:
+        return TwoScaleParams.conductor(eta=(0.2, 0.5, 1.4), k=(3.5, 2.5, 1.9), **base)
+    return getattr(TwoScaleParams, cfg.material)(eta=(1.5, 1.5, 1.5), rho_d=(0.6, 0.4, 0.2), **base)
+
+
+VARIANTS = [
+    ModelConfig(diffraction=False),
+    ModelConfig(material="plastic", diffraction=False),
+    ModelConfig(specular=False),
+    ModelConfig(material="plastic", specular=False, diffraction=False),
+    ModelConfig(material="subsurface"),
+    ModelConfig(material="plastic", diffuse_eta2=True, q_mode="F"),
+    ModelConfig(q_mode="full", shadowing="uncorrelated", apparatus=True),
+    ModelConfig(wavelengths=(0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7)),
+    ModelConfig(wavelengths=(0.45, 0.55, 0.65), spectral_output="spectrum"),
+    ModelConfig(path="exact"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cfg", VARIANTS, ids=lambda c: str(VARIANTS.index(c)))
+def test_every_config_chi2_and_unbiased(cfg):
+    """Every kind of configuration (lobes off, subsurface, full Q, apparatus, spectral, exact
+    path): χ² of ``sample`` against ``pdf``, finite values, and an unbiased albedo estimate.
+    The fast tests run the same code on the default conductor and plastic configurations."""
+    params = _variant_params(cfg)
+    n_out = cfg.n_channels
+    for theta_deg in (30, 85):
+        wi = _wi(theta_deg)
+        wo, pdf = twoscale.sample(params, wi, _uniforms(7), cfg)
+        wo, pdf = np.asarray(wo), np.asarray(pdf)
+        assert np.all(np.isfinite(wo)) and np.all(np.isfinite(pdf))
+        p_value = _chi2(params, cfg, wi, wo, pdf)[0]
+        assert p_value > 1e-3, (theta_deg, p_value)
+        valid = pdf > 0
+        rho = np.asarray(twoscale.brdf(params, wi, jnp.asarray(wo), cfg))
+        assert rho.shape == (len(pdf), n_out)
+        w = np.where(valid[:, None], rho * wo[:, 2:] / np.where(valid, pdf, 1.0)[:, None], 0.0)
+        ref = np.asarray(twoscale.albedo(params, float(wi[2]), cfg))
+        sigma = w.std(axis=0) / math.sqrt(len(w))
+        np.testing.assert_array_less(np.abs(w.mean(axis=0) - ref), 5 * sigma + 3e-3 * ref + 1e-6)
