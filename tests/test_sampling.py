@@ -366,6 +366,7 @@ VARIANTS = [
     ModelConfig(material="plastic", specular=False, diffraction=False),
     ModelConfig(material="subsurface"),
     ModelConfig(material="plastic", diffuse_eta2=True, q_mode="F"),
+    ModelConfig(material="plastic", diffuse_fresnel=False, apparatus=True),  # fit's protocol
     ModelConfig(q_mode="full", shadowing="uncorrelated", apparatus=True),
     ModelConfig(wavelengths=(0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7)),
     ModelConfig(wavelengths=(0.45, 0.55, 0.65), spectral_output="spectrum"),
@@ -376,8 +377,8 @@ VARIANTS = [
 @pytest.mark.slow
 @pytest.mark.parametrize("cfg", VARIANTS, ids=lambda c: str(VARIANTS.index(c)))
 def test_every_config_chi2_and_unbiased(cfg):
-    """Every kind of configuration (lobes off, subsurface, full Q, apparatus, spectral, exact
-    path): χ² of ``sample`` against ``pdf``, finite values, and an unbiased albedo estimate.
+    """Every kind of configuration (lobes off, subsurface, full Q, apparatus, Lambertian body,
+    spectral, exact path): χ² of ``sample`` against ``pdf``, finite values, and an unbiased albedo estimate.
     The fast tests run the same code on the default conductor and plastic configurations."""
     params = _variant_params(cfg)
     n_out = cfg.n_channels
