@@ -52,6 +52,9 @@ __all__ = [
     "bin_to_angles",
     "angles_to_bin",
     "grid_angles",
+    "axis_angles",
+    "reciprocal_phi_bin",
+    "n_first_phi_bins",
     "grid_directions",
     "bihemispherical_albedo",
     "valid_geometric",
@@ -158,6 +161,31 @@ def angles_to_bin(theta_h, theta_d, phi_d):
     i_d = _floor_index(td * (N_THETA_D / (np.pi / 2)), N_THETA_D)
     i_phi = _floor_index(np.where(pd < 0.0, pd + np.pi, pd) * (N_PHI_D / np.pi), N_PHI_D)
     return i_h, i_d, i_phi
+
+
+def reciprocal_phi_bin(i_phi, convention: str = "lower"):
+    """The φ_d bin holding the same direction pair with ``i`` and ``o`` swapped (and mirrored in
+    the plane ``y = 0``): ``(180 − k) mod 180`` at lower edges (bins 0 and 90 are their own
+    partners), ``179 − k`` at bin centres. An isotropic, reciprocal BRDF has equal values in
+    partner cells."""
+    _check_convention(convention)
+    k = np.asarray(i_phi)
+    return (N_PHI_D - k) % N_PHI_D if convention == "lower" else N_PHI_D - 1 - k
+
+
+def n_first_phi_bins(convention: str = "lower") -> int:
+    """Bins ``k < n`` hold one member of every reciprocal pair (and the self-partners): 91 at
+    lower edges (0…90), 90 at centres."""
+    _check_convention(convention)
+    return N_PHI_D // 2 + 1 if convention == "lower" else N_PHI_D // 2
+
+
+def axis_angles(convention: str = "lower"):
+    """The 1-D axes ``(θ_h (90,), θ_d (90,), φ_d (180,))`` of the grid, in radians."""
+    th, _, _ = bin_to_angles(np.arange(N_THETA_H), 0, 0, convention)
+    _, td, _ = bin_to_angles(0, np.arange(N_THETA_D), 0, convention)
+    _, _, pd = bin_to_angles(0, 0, np.arange(N_PHI_D), convention)
+    return th, td, pd
 
 
 def _axis_angles(convention: str):

@@ -445,15 +445,13 @@ class HalfDiffGrid(eqx.Module):
 def _merl_grid_numpy(convention: str) -> tuple[np.ndarray, ...]:
     from twoscale import merl
 
-    th, _, _ = merl.bin_to_angles(np.arange(merl.N_THETA_H), 0, 0, convention)
-    _, td, _ = merl.bin_to_angles(0, np.arange(merl.N_THETA_D), 0, convention)
-    # Reciprocal partners: bin k ↔ 180 − k (lower edges) or 179 − k (centres); compute the first
-    # half (k ≤ 90, resp. k < 90) and unfold the rest.
+    th, td, pd = merl.axis_angles(convention)
+    # Reciprocal partners (merl.reciprocal_phi_bin): compute the first half of the φ_d bins and
+    # unfold the rest.
     k = np.arange(merl.N_PHI_D)
-    partner = (180 - k) % 180 if convention == "lower" else 179 - k
-    n_half = 91 if convention == "lower" else 90
-    unfold = np.where(k < n_half, k, partner).astype(np.int32)
-    _, _, pd = merl.bin_to_angles(0, 0, np.arange(n_half), convention)
+    n_half = merl.n_first_phi_bins(convention)
+    unfold = np.where(k < n_half, k, merl.reciprocal_phi_bin(k, convention)).astype(np.int32)
+    pd = pd[:n_half]
     wi, wo = geometry._dirs_from_half_diff(np, th[:, None, None], td[None, :, None], pd)
     phi = geometry._azimuth_difference(np, wi, wo, np.finfo(np.float64).eps ** 2)
     out = (np.cos(th), np.cos(td), np.sin(td), wi[..., 2], wo[..., 2], phi, unfold)

@@ -12,6 +12,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from twoscale.merl import N_CELLS, N_THETA_D, N_THETA_H, n_first_phi_bins
+
 #: Entries (cell pairs, or direction pairs) per chunk of a pass over the data: the granularity of
 #: the subsample stages (2 048 pairs ≈ 4 000 cells).
 CHUNK = 2048
@@ -19,11 +21,11 @@ CHUNK = 2048
 
 #: Chunks of a fitting buffer: at most 90·90·91 reciprocal pairs (φ_d bins 0…90 are the first
 #: members) fit in 360 × 2048.
-PAIR_CHUNKS = -(-(90 * 90 * 91) // CHUNK)
+PAIR_CHUNKS = -(-(N_THETA_H * N_THETA_D * n_first_phi_bins("lower")) // CHUNK)
 
 
 #: Chunks of an evaluation buffer: every one of the 90·90·180 MERL cells fits in 712 × 2048.
-DIRECTION_CHUNKS = -(-(90 * 90 * 180) // CHUNK)
+DIRECTION_CHUNKS = -(-N_CELLS // CHUNK)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,16 +141,17 @@ class Pairs:
 def pair_cells(cells: Cells) -> Pairs:
     """Group MERL cells (lower-edge directions) with their reciprocal partners.
 
-    The partner of ``i_φ = k`` is ``180 − k``; ``k = 0`` and ``k = 90`` are their own partners and
-    stay single. A pair's directions are those of its member with ``k ≤ 90``.
+    The partner of ``i_φ = k`` is :func:`twoscale.merl.reciprocal_phi_bin` (``180 − k``);
+    ``k = 0`` and ``k = 90`` are their own partners and stay single. A pair's directions are
+    those of its member with ``k ≤ 90``.
     """
     from twoscale import merl
     from twoscale.geometry import _azimuth_difference, _dirs_from_half_diff
 
     idx = np.asarray(cells.index, dtype=np.int64)
     k = idx % merl.N_PHI_D
-    second = k > 90
-    first_index = np.where(second, idx - k + (merl.N_PHI_D - k), idx)
+    second = k >= merl.n_first_phi_bins("lower")
+    first_index = np.where(second, idx - k + merl.reciprocal_phi_bin(k, "lower"), idx)
     keys, slot_pair = np.unique(first_index, return_inverse=True)
     n_ch = cells.rho.shape[-1]
     rho = np.zeros((keys.size, 2, n_ch))
@@ -220,10 +223,10 @@ def pack_directions(wi, wo, n_chunks: int = DIRECTION_CHUNKS, chunk: int = CHUNK
 
 
 #: θ_d bins of the MERL grid (``hd = N_BINS_D · ih + jd``) and all (θ_h, θ_d) bins.
-N_BINS_D = 90
+N_BINS_D = N_THETA_D
 
 
-N_BINS = 90 * 90
+N_BINS = N_THETA_H * N_THETA_D
 
 
 #: Bin lists of a stage are padded to a multiple of this (one compiled size per multiple).

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from twoscale.merl import bihemispherical_albedo
+from twoscale.merl import axis_angles, bihemispherical_albedo
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -60,7 +60,7 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
     values = np.asarray(values, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool) & np.all(np.isfinite(values), axis=-1)
     n_ch = values.shape[-1]
-    theta_h = (np.arange(90) / 90.0) ** 2 * (np.pi / 2)
+    theta_h, _, _ = axis_angles("lower")
     luma = _LUMA if n_ch == 3 else np.full(n_ch, 1.0 / n_ch)
 
     # Profile along θ_h near normal incidence (θ_d ≤ 4°), averaged over φ_d and θ_d.
@@ -80,7 +80,7 @@ def data_stats(values: np.ndarray, valid: np.ndarray) -> DataStats:
     width = 0.5
     if lum0 > 0:
         target = lum0 / math.e
-        for i in range(first + 1, 90):
+        for i in range(first + 1, theta_h.size):
             if have[i] and lum[i] <= target:
                 # Interpolate in log(lum) between bins i−1 and i.
                 a, b = max(lum[i - 1], 1e-300), max(lum[i], 1e-300)
@@ -104,8 +104,7 @@ def floor_level(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``(C,)``: the median over the valid cells of ``θ_h ∈ [50°, 70°]``, ``θ_d ≤ 30°`` of a
     ``(90, 90, 180, C)`` MERL table (measured or modelled): the level of a dielectric's diffuse
     body, the far tail of a metal's lobe; 0 where the band has no valid cell."""
-    theta_h = (np.arange(90) / 90.0) ** 2 * (np.pi / 2)
-    theta_d = np.arange(90) * (np.pi / 180)
+    theta_h, theta_d, _ = axis_angles("lower")
     band = (theta_h >= np.radians(50)) & (theta_h <= np.radians(70))
     dband = theta_d <= np.radians(30)
     values = np.asarray(values)

@@ -49,7 +49,7 @@ def synthetic(
     from twoscale import merl
     from twoscale.fit.evaluation import predict_cells
 
-    shape = (90, 90, 180)
+    shape = merl.SHAPE
     blank = merl.MerlData(
         values=np.zeros(shape + (3,)), valid=np.ones(shape, bool), path=None, name=name
     )
