@@ -49,19 +49,10 @@ from twoscale._numerics import float_dtype, safe_log, safe_sqrt
 from twoscale.distribution import log_d0
 from twoscale.tables import Spline
 
-__all__ = [
-    "LobeSlice",
-    "fit_params",
-    "lobe",
-    "lobe_exact",
-    "lobe_from_components",
-    "lobe_spline",
-    "lobe_table",
-    "map_params",
-    "normalised_angle",
-    "shape_exponent",
-    "small_scale",
-]
+#: What users call: the convolved lobe (either path) and its per-parameter-set slice. The table
+#: plumbing (``lobe_table``, ``map_params``, ``normalised_angle``, ...) stays importable for the
+#: table generators and tests, but is not part of the interface.
+__all__ = ["lobe", "lobe_exact", "lobe_spline", "LobeSlice"]
 
 #: tanh-sinh truncation: at |t| = 3.2 the node sits 2e-17 (relative) from the interval end.
 _TS_T = 3.2

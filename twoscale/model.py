@@ -49,8 +49,6 @@ __all__ = [
     "brdf",
     "brdf_grid",
     "brdf_merl",
-    "brdf_from_terms",
-    "half_diff_terms",
     "merl_grid",
     "HalfDiffGrid",
     "lobes",
