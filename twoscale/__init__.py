@@ -9,7 +9,7 @@ The public surface (everything else lives in the submodules, which are public to
     parts = twoscale.lobes(params, wi, wo)              # {"specular", "diffraction", ...}
     a = twoscale.albedo(params, cos_theta_i)            # directional albedo
     wo, pdf = twoscale.sample(params, wi, u)            # importance sampling, u: (..., 3) uniforms
-    table = twoscale.albedo_table(params, 256)          # albedo at cos θ_i = (i+1)/256
+    energy = twoscale.albedo_table(params, 256)         # albedo at cos θ_i = (i+1)/256
     table = twoscale.brdf_merl(params)                  # (90, 90, 180, 3) on the MERL grid, fast
     result = twoscale.fit(twoscale.merl.read("gold-metallic-paint.binary"))  # needs float64
 
