@@ -120,9 +120,9 @@ def region_stats(e):
 def accuracy_rows(n_points: int = 2000, seed: int = 0) -> list[dict]:
     """Rows for ``tables/ACCURACY.md``; ``n_points`` random parameter sets (×~80 θ_h each)."""
     from twoscale import convolution
-    from twoscale.tables import DATA_DIR
+    from twoscale.tables import DATA_DIR, load_table
 
-    table = convolution._table()
+    table = load_table(convolution.TABLE_NAME)
     meta = {
         "build_seconds": table.meta.get("build_seconds"),
         "file_bytes": (DATA_DIR / f"{convolution.TABLE_NAME}.npz").stat().st_size,

@@ -146,9 +146,9 @@ def accuracy_rows(
         dom = f"outside the table: {name} (asymptotes), s, c as above"
         rows.append(_row(f"R tables vs exact, outside table: {name}", p, got, want, dom))
     from twoscale import psd
-    from twoscale.tables import DATA_DIR
+    from twoscale.tables import DATA_DIR, load_table
 
-    meta = psd._table().meta
+    meta = load_table(psd.TABLE_NAME).meta
     for row in rows:
         if "tables" in row["quantity"]:
             row["build_seconds"] = meta.get("build_seconds")

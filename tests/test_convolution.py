@@ -15,7 +15,14 @@ from scipy import integrate
 from scipy.special import gammaln
 
 from tests.helpers import assert_finite_tree, fd_grad
-from twoscale.convolution import fit_params, lobe, lobe_from_components, lobe_spline
+from twoscale.convolution import (
+    TABLE_NAME,
+    fit_params,
+    lobe,
+    lobe_from_components,
+    lobe_spline,
+)
+from twoscale.tables import load_table
 
 
 def lobe64(*args, **kw):
@@ -203,9 +210,7 @@ def test_table_gradients_fd(point):
 
 
 def test_table_gradients_at_node_and_edges():
-    from twoscale.convolution import _table
-
-    ax = _table().axes
+    ax = load_table(TABLE_NAME).axes
     b, p, cm1, au = (ax[0].nodes()[5], ax[1].nodes()[4], ax[2].nodes()[3], ax[3].nodes()[9])
     at_node = (0.95, math.exp(b), math.exp(p), 1.0 + math.exp(cm1), math.sinh(au))
     _check_grads(at_node)
@@ -215,9 +220,7 @@ def test_table_gradients_at_node_and_edges():
 
 
 def test_derivative_continuous_across_node():
-    from twoscale.convolution import _table
-
-    node_u = math.sinh(_table().axes[3].nodes()[8])
+    node_u = math.sinh(load_table(TABLE_NAME).axes[3].nodes()[8])
     g = jax.jit(jax.grad(lambda u: lobe64(0.97, 0.03, 1.5, 2.0, u)))
     eps = 1e-7 * node_u
     assert float(g(node_u - eps)) == pytest.approx(float(g(node_u + eps)), rel=1e-5)

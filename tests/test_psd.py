@@ -20,6 +20,7 @@ from twoscale.psd import (
     renormalisation,
     renormalisation_slice,
 )
+from twoscale.tables import load_table
 
 PATHS = ("exact", "tables")
 
@@ -174,7 +175,7 @@ def test_accuracy_rows_report():
 
 
 def test_table_file():
-    t = psd._table()
+    t = load_table(psd.TABLE_NAME)
     assert t.meta["name"] == "renormalisation" and t.meta["version"] >= 1
     lb, lc, x = t.axes
     assert lb.lo < -2.0 and lb.hi > 4.0 and lc.lo < -2.0 and lc.hi > math.log10(9.0)
@@ -311,7 +312,7 @@ def test_check_grads_interior(path):
 
 def test_table_derivative_continuous_across_grid_nodes():
     """The cubic B-spline is C²: derivatives match on both sides of a node of each axis."""
-    t = psd._table()
+    t = load_table(psd.TABLE_NAME)
     ax_b, ax_c, ax_x = t.axes
     B, c = 10.0 ** ax_b.nodes()[30], 1.0 + 10.0 ** ax_c.nodes()[15]  # on nodes of both axes
     x_node = ax_x.nodes()[20]

@@ -26,6 +26,7 @@ from twoscale.shadowing import (
     smith_lambda_spline,
     van_ginneken,
 )
+from twoscale.tables import load_table
 
 PATHS = ("exact", "tables")
 
@@ -283,7 +284,7 @@ def test_gradients_at_ties_and_folds():
 
 def test_table_derivative_continuous_across_nodes():
     """The C² spline: dΛ/da and dΛ/dp agree on both sides of a grid node (in ξ and in log p)."""
-    tab = shadowing._table()
+    tab = load_table(shadowing.TABLE_NAME)
     xi_axis, p_axis = tab.axes[1], tab.axes[0]
     p = 1.3
     frame = {k: float(v) for k, v in shadowing.table_frame(p).items()}
@@ -384,7 +385,7 @@ def test_shipped_table_matches_generator():
     deterministic."""
     from tables import build_smith
 
-    tab = shadowing._table()
+    tab = load_table(shadowing.TABLE_NAME)
     assert tab.axes == build_smith.axes()
     assert tab.meta["version"] == build_smith.VERSION
     # The shipped axes' ranges with fewer nodes (a coarse grid would pad them past the range

@@ -23,9 +23,16 @@ def eps(dtype) -> float:
     return float(jnp.finfo(dtype).eps)
 
 
-def float_dtype(*xs):
-    """Result floating dtype of the inputs (weak Python scalars do not promote float32)."""
-    return jnp.result_type(*xs, jnp.float32) if xs else jnp.float32
+def float_dtype(*xs, default=jnp.float32):
+    """Result floating dtype of the inputs: the one dtype rule of the kernels.
+
+    A floating array among the inputs sets it (weak Python scalars do not promote float32).
+    Without one (Python numbers, integer arrays) it is ``default``: float32 for the model, or
+    ``float``, JAX's default float (float64 under ``jax_enable_x64``), where a component kernel
+    documents that Python numbers follow JAX's default (:mod:`twoscale.shadowing`,
+    :mod:`twoscale.psd`).
+    """
+    return jnp.dtype(jnp.result_type(*xs, default))
 
 
 def safe_sqrt(x):

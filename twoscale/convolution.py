@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from twoscale import tables
 from twoscale._numerics import float_dtype, safe_log, safe_sqrt
 from twoscale.distribution import log_d0
 from twoscale.tables import Spline
@@ -205,12 +206,6 @@ MAP_LAMBDA = 0.4
 MAP_END_LEVEL = 1e-4
 
 
-def _table():
-    from twoscale.tables import load_table
-
-    return load_table(TABLE_NAME)
-
-
 def _coords(beta, p, c):
     return jnp.log(beta), jnp.log(p), jnp.log(c - 1.0)
 
@@ -277,37 +272,14 @@ def normalised_angle(cos_theta_h, u, beta, q, log_map):
     return _t_bracket(zeta, zeta_end, zeta_pi) / t_max
 
 
-@functools.cache
-def _extra_coeffs(name: str, n_axes: int) -> np.ndarray:
-    from twoscale.tables import bspline_coefficients
-
-    return bspline_coefficients(_table().extras[name], n_axes)
-
-
-def _extra_spline(name, n_axes, dtype) -> Spline:
-    axes = _table().axes[:n_axes]
-    return Spline(
-        jnp.asarray(_extra_coeffs(name, n_axes), dtype),
-        tuple(a.lo for a in axes),
-        tuple(a.step for a in axes),
-        tuple(a.n for a in axes),
-    )
-
-
 def _splines(dtype):
-    """``(g, log_map, log_k)`` splines of the packaged table in ``dtype`` (NumPy parts cached)."""
+    """``(g, log_map, log_k)``: the table's values over all 5 axes, its extra ``map`` (the angle
+    coordinate's 3 parameters) over (β, p, c, u) and ``log_k`` over (β, p), from the table service."""
     return (
-        _table().spline(dtype),
-        _extra_spline("map", 4, dtype),
-        _extra_spline("log_k", 2, dtype),
+        tables.spline(TABLE_NAME, dtype),
+        tables.spline(TABLE_NAME, dtype, "map", n_axes=4),
+        tables.spline(TABLE_NAME, dtype, "log_k", n_axes=2),
     )
-
-
-def _spline_dtype(dtype):
-    dtype = jnp.dtype(dtype)
-    if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-        dtype = jnp.dtype(jnp.float32)
-    return dtype.name
 
 
 class LobeSlice(eqx.Module):
@@ -333,7 +305,7 @@ class LobeSlice(eqx.Module):
 
 def lobe_spline(beta, p, c, dtype=jnp.float64) -> LobeSlice:
     """Slice the table at scalar ``(β, p, c)`` (once per parameter set); see :class:`LobeSlice`."""
-    g, log_map, log_k = _splines(_spline_dtype(dtype))
+    g, log_map, log_k = _splines(dtype)
     dt = g.coeffs.dtype
     beta, p, c = (jnp.asarray(x, dt) for x in (beta, p, c))
     lb, lp, lc = _coords(beta, p, c)

@@ -78,14 +78,13 @@ in s (:class:`RenormalisationSlice`).
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from twoscale._numerics import gauss_legendre
+from twoscale import tables
+from twoscale._numerics import float_dtype, gauss_legendre
 from twoscale.tables import Spline, _weights, load_table
 
 __all__ = [
@@ -124,10 +123,9 @@ def _expm1_ratio(z):
     return jnp.where(small, series, jnp.expm1(zs) / zs)
 
 
-def _float_dtype(*xs):
-    """Floating dtype of the inputs: float32 arrays stay float32 (Python scalars are weak), all-scalar
-    or integer inputs give the default float (float64 under ``jax_enable_x64``)."""
-    return jnp.dtype(jnp.result_type(*xs, 0.0))
+# dtype rule: float_dtype(..., default=float). float32 arrays stay float32 (Python scalars are
+# weak); unlike the model's float32 default, all-scalar or integer inputs give JAX's default float
+# (float64 under ``jax_enable_x64``), as the kernels document.
 
 
 def _clamp_s(s):
@@ -155,7 +153,7 @@ def k_correlation(f, sigma_s, b, c):
     Returns:
         ``S_HS`` in µm⁴ (µm² height² per 1/µm² of frequency), input dtype.
     """
-    dtype = _float_dtype(f, sigma_s, b, c)
+    dtype = float_dtype(f, sigma_s, b, c, default=float)
     f, sigma_s, b, c = (jnp.asarray(v, dtype) for v in (f, sigma_s, b, c))
     bf = b * f
     return (
@@ -209,26 +207,9 @@ def _scaled_exact(s, B, c, n_nodes: int = N_NODES):
 # --- table path -------------------------------------------------------------------------------
 
 
-@functools.cache
-def _table():
-    return load_table(TABLE_NAME)
-
-
-def _spline(dtype_name: str) -> Spline:
-    """The table's spline with coefficients in ``dtype_name`` (device arrays, cached)."""
-    return _spline_cached(dtype_name, bool(jax.config.jax_enable_x64))
-
-
-@functools.cache
-def _spline_cached(dtype_name: str, x64: bool) -> Spline:
-    # Concrete arrays even when first called inside a trace (a cached tracer would leak).
-    with jax.ensure_compile_time_eval():
-        return _table().spline(jnp.dtype(dtype_name))
-
-
 def _axis_bounds():
     """(log10 B_lo, log10 B_hi, log10(c_lo − 1), log10(c_hi − 1)) of the table."""
-    ax = _table().axes
+    ax = load_table(TABLE_NAME).axes
     return ax[0].lo, ax[0].hi, ax[1].lo, ax[1].hi
 
 
@@ -292,7 +273,7 @@ def _scaled_tables(s, B, c):
     """``ρ(s; B, c)`` from the table: ``ρ(0) · exp(q̃ · B²/(1+B²))``."""
     dtype = jnp.result_type(s, B, c)
     lb, lc, B_x, qscale = _table_coords(B, c)
-    q_tilde = _lookup(_spline(jnp.dtype(dtype).name), lb, lc, _s_coord(s, B_x))
+    q_tilde = _lookup(tables.spline(TABLE_NAME, dtype), lb, lc, _s_coord(s, B_x))
     return _scaled_normal(B, c) * jnp.exp(q_tilde * qscale)
 
 
@@ -339,12 +320,12 @@ def renormalisation_slice(B, c, *, dtype=None) -> RenormalisationSlice:
         A :class:`RenormalisationSlice`; call it (or ``.renormalisation``) on ``sin θ`` for R, or
         ``.diffraction_ratio`` for ``(c−1)B²/R``.
     """
-    dtype = jnp.dtype(dtype or _float_dtype(B, c))
+    dtype = jnp.dtype(dtype or float_dtype(B, c, default=float))
     B, c = jnp.asarray(B, dtype), jnp.asarray(c, dtype)
     if B.ndim or c.ndim:
         raise ValueError("renormalisation_slice takes scalar B and c (vmap over channels)")
     lb, lc, B_x, qscale = _table_coords(B, c)
-    spline = _spline(dtype.name).slice(lb, lc)
+    spline = tables.spline(TABLE_NAME, dtype).slice(lb, lc)
     return RenormalisationSlice(spline, B, c, B_x, qscale, _scaled_normal(B, c))
 
 
@@ -352,7 +333,7 @@ def renormalisation_slice(B, c, *, dtype=None) -> RenormalisationSlice:
 
 
 def _scaled(sin_theta, B, c, path: str):
-    dtype = _float_dtype(sin_theta, B, c)
+    dtype = float_dtype(sin_theta, B, c, default=float)
     s, B, c = (jnp.asarray(v, dtype) for v in (sin_theta, B, c))
     s = _clamp_s(s)
     if path == "exact":

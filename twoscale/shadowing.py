@@ -76,7 +76,6 @@ uncorrelated product ``G1(i) G1(o)`` (Mitsuba 3, pbrt).
 
 from __future__ import annotations
 
-import functools
 import math
 
 import equinox as eqx
@@ -85,8 +84,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from twoscale._numerics import tiny
-from twoscale.tables import Spline, load_table
+from twoscale import tables
+from twoscale._numerics import float_dtype, tiny
+from twoscale.tables import Spline
 
 __all__ = [
     "smith_lambda_a",
@@ -125,10 +125,8 @@ def a_max(dtype) -> float:
     return float(jnp.finfo(dtype).max) ** 0.25
 
 
-def _dtype(*xs):
-    """Floating result dtype of the inputs (Python scalars follow JAX's default float)."""
-    dt = jnp.result_type(*xs)
-    return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+# dtype rule: float_dtype(..., default=float). Unlike the model's float32 default, Python numbers
+# and integer arrays follow JAX's default float here (float64 under x64), as the kernels document.
 
 
 def log_mean_slope(p):
@@ -245,18 +243,6 @@ def _reconstruct(t_val, log_a, log_a_top, p, frame):
     return jnp.exp(log_a + log_m + t_val - essential(_v0(log_a_top, p)))
 
 
-@functools.cache
-def _table():
-    return load_table(TABLE_NAME)
-
-
-@functools.cache
-def _spline(dtype_name: str) -> Spline:
-    # Concrete coefficients even when first requested inside a jit trace (the cache outlives it).
-    with jax.ensure_compile_time_eval():
-        return _table().spline(jnp.dtype(dtype_name))
-
-
 def _log_a_parts(a, frame):
     """``log a`` (floored at the smallest normal) and ``log min(a, a_hi)``."""
     log_a = jnp.log(jnp.maximum(a, tiny(a.dtype)))
@@ -268,7 +254,7 @@ def _lambda_table(a, p):
     frame = table_frame(p)
     log_a, log_a_top = _log_a_parts(a, frame)
     xi = jnp.clip(table_xi(log_a_top, frame), XI_LO, XI_HI)
-    t_val = _spline(a.dtype.name)(jnp.log(p), xi)
+    t_val = tables.spline(TABLE_NAME, a.dtype)(jnp.log(p), xi)
     return _reconstruct(t_val, log_a, log_a_top, p, frame)
 
 
@@ -314,12 +300,13 @@ def smith_lambda_spline(p, dtype=None) -> SmithLambdaSpline:
     Returns:
         A :class:`SmithLambdaSpline`; ``spline_1d(a)`` gives Λ, ``spline_1d.g1(a)`` gives G1.
     """
-    dtype = jnp.dtype(dtype or _dtype(p))
+    dtype = jnp.dtype(dtype or float_dtype(p, default=float))
     p = jnp.clip(jnp.asarray(p, dtype), P_MIN, P_MAX)
     if p.ndim != 0:
         raise ValueError(f"smith_lambda_spline needs a scalar p, got shape {p.shape}")
     frame = table_frame(p)
-    return SmithLambdaSpline(spline=_spline(dtype.name).slice(jnp.log(p)), p=p, **frame)
+    spline = tables.spline(TABLE_NAME, dtype).slice(jnp.log(p))
+    return SmithLambdaSpline(spline=spline, p=p, **frame)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -347,7 +334,7 @@ def smith_lambda_a(a, p, *, path: str = "tables"):
         Λ ≥ 0, broadcast shape, dtype of the inputs.
     """
     _check_path(path)
-    dtype = _dtype(a, p)
+    dtype = float_dtype(a, p, default=float)
     a, p = jnp.broadcast_arrays(jnp.asarray(a, dtype), jnp.asarray(p, dtype))
     a = jnp.clip(a, 0.0, a_max(dtype))
     return _lambda_exact(a, p) if path == "exact" else _lambda_table(a, p)
@@ -365,7 +352,8 @@ def smith_lambda(tan_theta, beta, p, *, path: str = "tables"):
     tan_theta, beta = jnp.asarray(tan_theta), jnp.asarray(beta)
     # tan θ = inf (grazing) is clamped *before* the product: ∂a/∂β = tan θ = inf times the
     # clamp's zero slope would be NaN. Beyond a_max(dtype) Λ's table/asymptote is clamped anyway.
-    t_max = a_max(_dtype(tan_theta, beta, p)) / 1e-3  # ≥ a_max/β for every β ≥ 1e-3
+    # ≥ a_max/β for every β ≥ 1e-3
+    t_max = a_max(float_dtype(tan_theta, beta, p, default=float)) / 1e-3
     return smith_lambda_a(beta * jnp.minimum(tan_theta, t_max), p, path=path)
 
 

@@ -22,6 +22,16 @@ spline buys (``python -m benchmarks.run``); the library always builds cubic spli
 :meth:`Table.subsample` keeps every k-th node (a coarser table of the same function, for
 resolution studies).
 
+**The table service.** Kernels never load, cache or cast a table themselves: they ask
+:func:`spline` for ``(table name, dtype, extra)`` and get one shared :class:`Spline`, built once
+(coefficients solved in NumPy float64, then cast to the *canonical* dtype, i.e. float64 becomes
+float32 unless ``jax_enable_x64`` is on, so the key is the dtype the arrays really have) and kept
+in one registry. ``extra`` names a further array of the same file that a kernel interpolates over
+the table's leading axes (the convolution table's angle map and ``log k``). :func:`clear_caches`
+empties the registry and the :func:`load_table` cache; :func:`cached_splines` lists what is
+built. :func:`interpolation` is a study hook (``python -m benchmarks.run``): while active, the
+tables' main splines are built with another order and/or on a subsampled grid.
+
 File format (``.npz``): ``values`` (float64, grid shape + optional trailing component dims) and
 ``meta`` (a JSON string with ``name``, ``version``, ``axes`` = list of
 ``{name, coordinate, lo, hi, n}``, ``components``, ``generator`` settings, ``build_seconds``).
@@ -30,6 +40,7 @@ Extra arrays may sit beside them.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import json
@@ -42,7 +53,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Axis", "Spline", "Table", "load_table", "save_table", "bspline_coefficients"]
+__all__ = [
+    "Axis",
+    "Spline",
+    "Table",
+    "load_table",
+    "save_table",
+    "bspline_coefficients",
+    "spline",
+    "clear_caches",
+    "cached_splines",
+    "interpolation",
+    "canonical_dtype",
+]
 
 
 @dataclass(frozen=True)
@@ -219,14 +242,15 @@ class Table:
         return bspline_coefficients(self.values, len(self.axes))
 
     def spline(self, dtype=jnp.float64, order: int = 3) -> Spline:
-        """The interpolating spline with coefficients in ``dtype`` (float32 or float64).
+        """The interpolating spline with coefficients in ``dtype`` (float32 or float64), built anew.
+
+        Kernels use the cached :func:`spline` service instead; this builds for any Table (tests,
+        generators, subsampled tables). ``dtype`` is canonicalised (:func:`canonical_dtype`).
 
         ``order=3`` (default): the C² cubic B-spline; ``order=1``: multilinear interpolation of
         the grid values (for comparisons; see the module docstring).
         """
-        dtype = jnp.dtype(dtype)
-        if dtype == jnp.float64 and not jax.config.jax_enable_x64:
-            dtype = jnp.dtype(jnp.float32)
+        dtype = canonical_dtype(dtype)
         if order not in ORDERS:
             raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
         return Spline(
@@ -306,12 +330,119 @@ def read_table(path) -> Table:
 DATA_DIR = Path(str(resources.files("twoscale") / "data"))
 
 
+def canonical_dtype(dtype) -> np.dtype:
+    """The dtype JAX arrays requested as ``dtype`` get: float64 is float32 unless x64 is on."""
+    return np.dtype(jax.dtypes.canonicalize_dtype(dtype))
+
+
 @functools.cache
 def load_table(name: str) -> Table:
-    """Load the packaged table ``twoscale/data/<name>.npz`` (cached)."""
+    """Load the packaged table ``twoscale/data/<name>.npz`` (cached; :func:`clear_caches`)."""
     path = DATA_DIR / f"{name}.npz"
     if not path.exists():
         raise FileNotFoundError(
             f"table {name!r} not found at {path}; rebuild the tables with `python -m tables.build_all`"
         )
     return read_table(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# The table service (see the module docstring): one registry of built splines.
+
+#: Built splines by key ``(name, canonical dtype name, extra, n_axes, order, stride)``.
+_SPLINES: dict[tuple, Spline] = {}
+#: ``(order, stride)`` of the tables' main splines; changed only inside :func:`interpolation`.
+_SETTINGS: tuple[int, int] = (3, 1)
+
+
+def _build(name: str, dtype: np.dtype, extra, n_axes, order: int, stride: int) -> Spline:
+    table = load_table(name)
+    if extra is None:
+        return (table.subsample(stride) if stride > 1 else table).spline(dtype, order)
+    if extra not in table.extras:
+        raise KeyError(f"table {name!r} has no extra array {extra!r} (has {sorted(table.extras)})")
+    axes = table.axes[:n_axes]
+    return Spline(
+        jnp.asarray(bspline_coefficients(table.extras[extra], n_axes), dtype),
+        tuple(a.lo for a in axes),
+        tuple(a.step for a in axes),
+        tuple(a.n for a in axes),
+    )
+
+
+def spline(name: str, dtype=jnp.float64, extra: str | None = None, *, n_axes=None) -> Spline:
+    """The shared spline of the packaged table ``name`` in ``dtype`` (built once, then cached).
+
+    The one way kernels get table coefficients: the same key returns the same object, so every
+    kernel, slice and jitted function shares one copy per dtype.
+
+    Args:
+        name: a table in ``twoscale/data`` (``"smith_lambda"``, ``"renormalisation"``,
+            ``"convolution"``).
+        dtype: coefficient dtype; canonicalised first (float64 → float32 without x64), and the
+            cache is keyed on the canonical dtype, so switching x64 on later never returns a
+            float32 spline for a float64 request.
+        extra: ``None``: the table's values (order and grid per :func:`interpolation`, by default
+            the cubic spline on the full grid). Otherwise the name of an extra array of the file,
+            interpolated by a cubic spline over the table's first ``n_axes`` axes (its remaining
+            dims are components); extras ignore :func:`interpolation`.
+        n_axes: required with ``extra``.
+    Returns:
+        A :class:`Spline` with concrete coefficients (also when first requested inside a trace).
+    """
+    dtype = canonical_dtype(dtype)
+    if (extra is None) != (n_axes is None):
+        raise ValueError("n_axes goes with extra (the extra array's number of spline axes)")
+    order, stride = _SETTINGS if extra is None else (3, 1)
+    key = (name, dtype.name, extra, n_axes, order, stride)
+    out = _SPLINES.get(key)
+    if out is None:
+        # Concrete arrays even when first requested inside a jit trace (the cache outlives it).
+        with jax.ensure_compile_time_eval():
+            out = _SPLINES[key] = _build(name, dtype, extra, n_axes, order, stride)
+    return out
+
+
+def cached_splines() -> tuple[tuple, ...]:
+    """Keys ``(name, dtype name, extra, n_axes, order, stride)`` of the splines built so far."""
+    return tuple(_SPLINES)
+
+
+def clear_caches() -> None:
+    """Forget every built spline and loaded table (the next request reloads the files).
+
+    Functions JAX already compiled keep the coefficients they traced with (they are trace-time
+    constants); call ``jax.clear_caches()`` too where that matters (:func:`interpolation` does).
+    """
+    _SPLINES.clear()
+    load_table.cache_clear()
+
+
+@contextlib.contextmanager
+def interpolation(order: int = 3, stride: int = 1):
+    """Study hook: while active, build the tables' main splines with ``order`` on every
+    ``stride``-th node of each axis (:meth:`Table.subsample`).
+
+    For comparisons (``python -m benchmarks.run``: multilinear like the authors' tables, coarser
+    grids); the library always uses ``order=3, stride=1``. Affects the values of every table
+    (Smith Λ, renormalisation, convolution ``g``), not the convolution's extras (angle map,
+    ``log k``). The splines are trace-time constants of jitted functions, so JAX's caches are
+    cleared on entry and on exit when the settings change; results computed inside stay valid.
+    Nests; not thread-safe.
+    """
+    global _SETTINGS
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    if stride < 1:
+        raise ValueError(f"stride must be ≥ 1, got {stride}")
+    previous = _SETTINGS
+    if (order, stride) == previous:
+        yield
+        return
+    _SETTINGS = (order, stride)
+    jax.clear_caches()
+    try:
+        yield
+    finally:
+        _SETTINGS = previous
+        jax.clear_caches()
