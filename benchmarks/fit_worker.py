@@ -36,7 +36,7 @@ def TRUE_PARAMS():  # noqa: N802 - a constant that needs the library imported
 
 
 def nbrdf_material(name: str):
-    from fit import nbrdf
+    from campaigns import nbrdf
 
     return nbrdf.render(nbrdf.load_weights()[name], name)
 

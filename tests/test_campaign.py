@@ -1,4 +1,4 @@
-"""The fitting campaign's bookkeeping (``fit/campaign.py``, ``fit/gallery.py``) without fitting:
+"""The fitting campaign's bookkeeping (``campaigns/campaign.py``, ``campaigns/gallery.py``) without fitting:
 expected material types, the report and its summary, records and ``--resume``, the gallery tile."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from fit import campaign, gallery
-from fit.campaign import MODELS, Row, expected_type
+from campaigns import campaign, gallery
+from campaigns.campaign import MODELS, Row, expected_type
 
 #: The 60 Neural-BRDF materials and the type a good fit should choose (from the campaign's brief).
 EXPECTED_60 = {

@@ -116,7 +116,7 @@ def test_exact_converged_in_node_count():
 # ---------------------------------------------------------------- table accuracy
 
 
-# Measured bounds of the table (tables/CONVOLUTION.md), relative error where lobe > 1e-3 peak:
+# Measured bounds of the table (tablegen/CONVOLUTION.md), relative error where lobe > 1e-3 peak:
 # whole-domain worst case (a large-p, large-u lobe just past D's cut-off, ~2e-3 of its peak),
 # median and fraction of points above 1e-2, worst in the authors' box.
 TABLE_WORST = 25.0
@@ -126,8 +126,8 @@ BOX_BOUND = 0.5
 
 
 def test_table_vs_exact_random():
-    """Random sets over the whole domain; bounds are the measured ones (tables/CONVOLUTION.md)."""
-    from tables.check_convolution import errors
+    """Random sets over the whole domain; bounds are the measured ones (tablegen/CONVOLUTION.md)."""
+    from tablegen.check_convolution import errors
 
     e = errors(n=24, seed=3, exact_nodes=61)
     assert e["finite"]
@@ -141,7 +141,7 @@ def test_table_vs_exact_random():
 
 def test_table_no_catastrophic_point():
     """No random point over the whole domain is off by more than the documented worst case."""
-    from tables.check_convolution import errors
+    from tablegen.check_convolution import errors
 
     e = errors(n=64, seed=11, exact_nodes=61)
     assert e["finite"]
@@ -166,7 +166,7 @@ AUTHORS = [
 def test_authors_table_regression():
     """Our (s, u') of the authors' form, fitted like them, against their table.
 
-    Measured (tables/CONVOLUTION.md): u' agrees within 15 % for u ≤ 6 at the narrow-D rows;
+    Measured (tablegen/CONVOLUTION.md): u' agrees within 15 % for u ≤ 6 at the narrow-D rows;
     s does not (the authors' s is up to 26 % larger at p = 5); at u = 30 their u' saturates.
     This test pins the part that agrees.
     """

@@ -204,7 +204,7 @@ RESOLVED = [
 
 @pytest.mark.parametrize("case", RESOLVED)
 def test_matches_exact_where_resolved(case):
-    # Tolerance 1e-7: the exact path is itself accurate to ≤ 4e-8 (tables/CONVOLUTION.md), the
+    # Tolerance 1e-7: the exact path is itself accurate to ≤ 4e-8 (tablegen/CONVOLUTION.md), the
     # coefficient quadrature to ≤ 3e-9 and the truncation tail at these points is below 1e-10
     # (measured agreement: 1e-14 … 2.3e-9, the worst at β = 1, p = 0.2).
     beta, p, c, u = case

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 from scipy import integrate
 
-from tables.check_renorm import accuracy_rows, edge_points, random_points, reference_quad
+from tablegen.check_renorm import accuracy_rows, edge_points, random_points, reference_quad
 from twoscale import psd
 from twoscale.psd import (
     diffraction_ratio,

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 from scipy import integrate, special
 
-from tables.check_smith import accuracy_rows, beckmann_lambda, random_points, reference_quad
+from tablegen.check_smith import accuracy_rows, beckmann_lambda, random_points, reference_quad
 from tests.helpers import assert_finite_tree, fd_grad
 from twoscale import shadowing
 from twoscale.shadowing import (
@@ -383,7 +383,7 @@ _LAMBDA = jax.jit(smith_lambda, static_argnames=("path",))
 def test_shipped_table_matches_generator():
     """The packaged table has the generator's axes and version, and a small rebuild is
     deterministic."""
-    from tables import build_smith
+    from tablegen import build_smith
 
     tab = load_table(shadowing.TABLE_NAME)
     assert tab.axes == build_smith.axes()

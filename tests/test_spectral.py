@@ -146,7 +146,7 @@ def test_presets_against_source_yaml(shared_data):
 
 
 def test_packaged_table_is_up_to_date(shared_data):
-    build = pytest.importorskip("tables.build_spectral_presets")
+    build = pytest.importorskip("tablegen.build_spectral_presets")
     w, eta, k, meta = build.build(shared_data / RII)
     w0, eta0, k0, raw = _packaged()
     np.testing.assert_array_equal(w, w0)

@@ -32,7 +32,7 @@ Two evaluation paths (``path=``):
     Tabulated values of ``log L − log(cos²θ_h + k sin²θ_h)`` on a 5-D grid over
     ``(ln β, ln p, ln(c−1), asinh u, t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
     onto ``[0, 1]`` for every parameter set, interpolated by the C² spline of
-    :mod:`twoscale.tables` (see :class:`LobeSlice` and ``tables/CONVOLUTION.md``).
+    :mod:`twoscale.tables` (see :class:`LobeSlice` and ``tablegen/CONVOLUTION.md``).
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ def lobe_exact(cos_theta_h, beta, p, c, u, *, n_theta: int = 121, n_phi: int = 1
     Returns:
         The lobe (1/sr), broadcast shape of the arguments, their floating dtype. Relative error
         ≲ 1e-6 over the documented domain at the default node counts (measured in
-        ``tables/CONVOLUTION.md``). At exactly ``cos θ_h = 1`` the derivative in ``cos θ_h`` is
+        ``tablegen/CONVOLUTION.md``). At exactly ``cos θ_h = 1`` the derivative in ``cos θ_h`` is
         returned as 0 (``θ_h = acos`` has an infinite slope there; the lobe is even in θ_h).
     """
     dtype = float_dtype(cos_theta_h, beta, p, c, u)
@@ -178,7 +178,7 @@ def lobe(cos_theta_h, beta, p, c, u, *, path: str = "tables", **kwargs):
 
 
 # --------------------------------------------------------------------------------------------
-# Compact table path: tabulated values of log L in a normalised angle t (see tables/CONVOLUTION.md).
+# Compact table path: tabulated values of log L in a normalised angle t (see tablegen/CONVOLUTION.md).
 #
 # log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t),
 # g a 5-D C² cubic B-spline of *values*; t ∈ [0, 1] covers θ_h ∈ [0, π/2] for every parameter set.

@@ -13,7 +13,7 @@ the Funk-Hecke theorem gives ``(S*D)_l = √(4π/(2l+1)) S_l D_l`` and
 The sum is exact as ``l_max → ∞``; the authors used ``l < 100`` (docs/model.md §3.8). The range of
 ``S`` is the whole ``[−1, 1]`` so that the series reproduces the integral over the upper
 hemisphere of ``m`` exactly as :func:`twoscale.convolution.lobe_exact` computes it (see
-``tables/CONVOLUTION.md``, "Integration range of S"); ``half_range=True`` in
+``tablegen/CONVOLUTION.md``, "Integration range of S"); ``half_range=True`` in
 :func:`small_scale_coefficients` gives the literal ``∫_0^1`` of docs/model.md §3.8 (it inserts ``χ(h·m > 0)``).
 
 Projections. Fixed composite Gauss-Legendre rules in ``θ ∈ [0, π/2]`` (``μ = cos θ``), so every
@@ -41,12 +41,12 @@ and D, roughly ``l_max ≈ 10/max(1/(2u), β)``: it fails only when both are nar
 ``D_l`` decays only algebraically, ``~ (lβ)^{−2−2p}``; the sharp shoulder of large ``p``; the
 horizon spike of small ``p``, large ``β``) are smoothed only by S, at scale ``1/(2u)``, so
 there large ``u`` alone needs many harmonics. :func:`required_l_max` bounds the truncation
-error by the spectral tail (a sufficient rule, 1-4× conservative, ``tables/HARMONICS.md``).
+error by the spectral tail (a sufficient rule, 1-4× conservative, ``tablegen/HARMONICS.md``).
 Below it, the truncated series rings (Gibbs): values oscillate
 around the lobe and can be **negative** in its tail; they are returned as computed (finite,
 with finite gradients), not clamped, so that the truncation stays visible.
 
-Measured (``tables/HARMONICS.md``): coefficients to ≤ 3e-12 of ``D_0``/``S_0`` (2.9e-9 at
+Measured (``tablegen/HARMONICS.md``): coefficients to ≤ 3e-12 of ``D_0``/``S_0`` (2.9e-9 at
 β = 1, p = 0.2); where resolved, agreement with :func:`twoscale.convolution.lobe_exact` to
 1e-14 … 2e-9. At ``l_max = 100`` the fitted ``(s, u')`` of the authors' table (docs/model.md §3.8)
 are reproduced to ≤ 1.3 % in ``u'``, including its saturation (p = 5, β = 0.0029, u = 30:
@@ -244,7 +244,7 @@ def ndf_coefficients(beta, p, *, l_max: int = 100):
     Returns:
         (..., l_max), broadcast shape of ``beta`` and ``p``, their floating dtype.
         ``D_1 = √(3/4π)`` exactly (normalisation ``∫ D cos θ dω = 1``); relative accuracy of
-        the quadrature ~1e-12 in float64 (measured in ``tables/HARMONICS.md``).
+        the quadrature ~1e-12 in float64 (measured in ``tablegen/HARMONICS.md``).
     """
     l_max = _check_l_max(l_max)
     dtype = float_dtype(beta, p)
@@ -356,7 +356,7 @@ def required_l_max(beta, u, p=1.0, c=2.0, *, rtol: float = 1e-2, l_cap: int = 20
     ``tail ≤ rtol · 10⁻³ · (S*D)(0)`` (the lobe at normal incidence stands in for its peak, a
     conservative choice), from the coefficients up to ``l_cap``. A sufficient condition:
     measured on 70 random points it exceeds the band limit actually needed by a factor
-    1-4 (``tables/HARMONICS.md``).
+    1-4 (``tablegen/HARMONICS.md``).
 
     Scale: the product spectrum decays once either factor does, so the band limit follows the
     *wider* of S and D: ``S_l ~ exp(−l·asinh(1/(2u)))``, ``D_l ~ exp(−l²β²/4)`` (Beckmann) —

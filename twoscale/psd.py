@@ -25,7 +25,7 @@ branch points ``1 + B² r² = 0``, at ``ψ = ±iψ_c``, ``ψ_c = acosh(1 + ((1�
 substitution ``ψ = ψ_c sinh v`` puts them at ``Im v = ±π/2`` whatever (s, B, c), so a fixed
 48-node Gauss-Legendre rule in ``v`` converges geometrically everywhere. Measured (float64): ≤ 2e-14
 relative to 25-digit mpmath on 67 points including the corners ``s ∈ {0, 1}``, ``B ∈ {1e-2, 1e4}``,
-``c ∈ {1.01, 10}``; ≤ 7e-13 against the SciPy reference of ``tables/check_renorm.py`` (the
+``c ∈ {1.01, 10}``; ≤ 7e-13 against the SciPy reference of ``tablegen/check_renorm.py`` (the
 reference's own accuracy). 32 nodes already give ≤ 3e-12.
 
 Stable scaled form (docs/model.md §6 traps 4-5). Dividing by the small-B asymptote ``(c−1)B²/2 = aB²``::
@@ -42,7 +42,7 @@ Small-B asymptote (derived from the series of G): ``R = aB² [1 − (c+1)(1+2s²
 Large-B limit: ``R → 1`` for s < 1 and ``R → 1/2`` at s = 1 (the specular point on the disk edge).
 
 Table path (``path="tables"``, the default): ``twoscale/data/renormalisation.npz`` built by
-``python -m tables.build_renorm``. It stores the smooth, bounded quantity::
+``python -m tablegen.build_renorm``. It stores the smooth, bounded quantity::
 
     q̃ = (1 + B⁻²) · log[R(s; B, c) / R(0; B, c)],     R(0; B, c) = 1 − (1+B²)^{−a}  (closed form)
 
@@ -50,7 +50,7 @@ on a uniform grid in ``(log10 B, log10(c−1), x)`` with the s coordinate last,
 ``x = asinh(B(1−s))/asinh(B)``: it resolves the transition of width ~1/B at s → 1 for large B,
 is ≈ 1−s for small B, maps s = 1 to 0 and s = 0 to 1. ``q̃`` is 0 at s = 0, bounded, and tends to
 ``−(c+1)s²/2`` as B → 0. Interpolation is the C² cubic B-spline of :mod:`twoscale.tables` on a
-63 × 33 × 99 grid (1.5 MB). Measured by ``python -m tables.check_renorm`` (20 000 random points,
+63 × 33 × 99 grid (1.5 MB). Measured by ``python -m tablegen.check_renorm`` (20 000 random points,
 30 % of them with ``1 − s`` log-uniform in [1e-8, 1], plus the domain's corners): maximum relative
 error in R (and in ``(c−1)B²/R``) 2.9e-5, 99th percentile 4e-6; log-derivatives agree with the
 exact path to ≲ 1e-4. The grid extends one step beyond the physical domain on every axis, so
@@ -99,7 +99,7 @@ __all__ = [
 TABLE_NAME = "renormalisation"
 
 # Gauss-Legendre nodes of the exact path (in v, ψ = ψ_c sinh v). 32 already give ≤ 3e-12
-# relative error; 48 leave margin for derivatives (measured in tables/check_renorm.py).
+# relative error; 48 leave margin for derivatives (measured in tablegen/check_renorm.py).
 N_NODES = 48
 
 # Series thresholds of ℓ(x) = log1p(x)/x and φ(z) = expm1(z)/z: below them the 4-term Taylor

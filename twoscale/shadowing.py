@@ -26,12 +26,12 @@ exponentially small (``Λ ~ e^{−a^{−2p}}`` as ``a → 0``); ``y − arctan y
 
     Λ = a m(p) − 1/2 + c1(p)/a,   m = E[R]/π = Γ(3/(2p))/(π Γ(1/p)),   c1 = Γ(1/(2p))/(2π Γ(1/p)).
 
-Measured (``tests/test_shadowing.py``, ``tables/check_smith.py``): ≤ 1e-11 relative to 30-digit
+Measured (``tests/test_shadowing.py``, ``tablegen/check_smith.py``): ≤ 1e-11 relative to 30-digit
 mpmath and to SciPy quadrature of the double integral, for ``a ∈ [1e-14, 1e15]``, ``p ∈ [0.1, 10]``.
 Differentiable in ``a`` and ``p``; gradients finite everywhere.
 
 **Table path** (``path="tables"``, the default): ``twoscale/data/smith_lambda.npz`` built by
-``python -m tables.build_smith``. It stores the smooth quantity::
+``python -m tablegen.build_smith``. It stores the smooth quantity::
 
     T(log p, x) = log[Λ/(a m(p))] + a^{−2p}
 
@@ -58,7 +58,7 @@ beyond the domain so its edges are interior to the spline. Reconstruction:
 * ``p`` is clamped to [:data:`P_MIN`, :data:`P_MAX`] (zero gradient in p outside; use the
   exact path there).
 
-Measured accuracy (``python -m tables.check_smith``): see that module and ``tables/ACCURACY.md``.
+Measured accuracy (``python -m tablegen.check_smith``): see that module and ``tablegen/ACCURACY.md``.
 
 Hot paths: :func:`smith_lambda_spline` slices the table at one ``p`` and returns a small
 :class:`SmithLambdaSpline` module whose call is a 1-D lookup per sample.

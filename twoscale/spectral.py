@@ -39,7 +39,7 @@ at λ_B < λ_G < λ_R, flat beyond λ_B and λ_R. It reproduces the three values
 spectrum, so grey stays exactly grey through :func:`spectrum_to_rgb`.
 
 Presets (:func:`preset`): n, k of seven metals from the refractiveindex.info database (CC0), resampled
-by ``tables/build_spectral_presets.py`` onto 360–830 nm every 5 nm and stored in
+by ``tablegen/build_spectral_presets.py`` onto 360–830 nm every 5 nm and stored in
 ``twoscale/data/spectral_presets.npz`` together with the source pages, their reference strings and
 the resampling method (``preset_metadata()``). Between the stored nodes values are interpolated
 linearly in λ (exact at the nodes).
@@ -290,7 +290,7 @@ def _preset_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     path = DATA_DIR / PRESETS_FILE
     if not path.exists():
         raise FileNotFoundError(
-            f"{path} not found; rebuild it with `python -m tables.build_spectral_presets`"
+            f"{path} not found; rebuild it with `python -m tablegen.build_spectral_presets`"
         )
     with np.load(path, allow_pickle=False) as f:
         meta = json.loads(str(f["meta"]))

@@ -341,7 +341,7 @@ def load_table(name: str) -> Table:
     path = DATA_DIR / f"{name}.npz"
     if not path.exists():
         raise FileNotFoundError(
-            f"table {name!r} not found at {path}; rebuild the tables with `python -m tables.build_all`"
+            f"table {name!r} not found at {path}; rebuild the tables with `python -m tablegen.build_all`"
         )
     return read_table(path)
 

@@ -31,7 +31,7 @@ def merl_protocol(*, diffraction: bool = True, apparatus: bool = True, diffuse_f
       Neural-BRDF stand-ins tried (plastic fits of yellow-plastic, red-fabric2, pink-plastic,
       white-fabric) the Lambertian body lowered the log RMSE by 13 %, 23 %, 18 % and 35 %
       (specular-red-phenolic: equal), and only with it do pink-plastic and white-fabric beat
-      GGX + Lambert. ``fit/RESULTS.md`` has the whole campaign.
+      GGX + Lambert. ``campaigns/RESULTS.md`` has the whole campaign.
     """
     from twoscale.config import ModelConfig
 

@@ -36,7 +36,7 @@ class Stage:
 #: Default: every start on ≈ 4 096 cells, the best 2 (per material type) on ≈ 32 768, the best
 #: one on 262 144 (rounds of 5 steps there: each step is a pass over those cells). Refining on
 #: all ≈ 1.1 M valid cells instead ("full") changed the log RMSE on all cells by < 1e-4 on the
-#: stand-ins measured (fit/RESULTS.md) at 4× the cost of that stage.
+#: stand-ins measured (campaigns/RESULTS.md) at 4× the cost of that stage.
 DEFAULT_SCHEDULE = (
     Stage(n_cells=4096, keep=2, max_steps=60),
     Stage(n_cells=32768, keep=1, max_steps=60),

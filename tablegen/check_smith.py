@@ -1,7 +1,7 @@
 """Accuracy of the Smith Λ(a; p): exact path vs SciPy and Beckmann, table path vs exact path.
 
-Run from the repository root: ``python -m tables.check_smith`` prints one row per check;
-:func:`accuracy_rows` returns the same rows (used by ``tables/report.py`` and the tests).
+Run from the repository root: ``python -m tablegen.check_smith`` prints one row per check;
+:func:`accuracy_rows` returns the same rows (used by ``tablegen/report.py`` and the tests).
 
 Relative error in Λ is counted where the exact ``Λ > 1e-12`` (below that Λ is exponentially small,
 ``G1 = 1`` to float64 and only its absolute size matters); the relative error in ``G1 = 1/(1+Λ)``

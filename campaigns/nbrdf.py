@@ -15,7 +15,7 @@ the fitting issue; real MERL files also leave the last grazing cells unmeasured)
 invalid (−1). These are approximations of the measurements
 (errors of several %), not the measurements: use them to check that fits converge and generalise.
 
-    python -m fit.nbrdf --out DIR [--materials nickel chrome ...] [--min-cos 0.01]
+    python -m campaigns.nbrdf --out DIR [--materials nickel chrome ...] [--min-cos 0.01]
 
 writes ``DIR/<material>.binary``. Never commit the rendered files (they derive from shared data).
 """
@@ -134,7 +134,9 @@ def render_all(out_dir, materials=None, npz_path=None, min_cos: float = MIN_COS)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fit.nbrdf", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m campaigns.nbrdf", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("--out", required=True, help="output folder for <material>.binary")
     ap.add_argument("--materials", nargs="*", help="materials to render (default: all)")
     ap.add_argument(

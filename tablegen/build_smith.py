@@ -1,6 +1,6 @@
 """Build ``twoscale/data/smith_lambda.npz``: the table of the Smith Λ(a; p) of the EPD.
 
-Run from the repository root: ``python -m tables.build_smith`` (deterministic, float64; a few
+Run from the repository root: ``python -m tablegen.build_smith`` (deterministic, float64; a few
 seconds on one core). What is stored and why is documented in :mod:`twoscale.shadowing`:
 
     T(log p, x) = log[Λ(a; p) / (a m(p))] + a^{−2p},     m(p) = Γ(3/(2p))/(π Γ(1/p)),
@@ -9,7 +9,7 @@ on a uniform grid in ``log p`` (p ∈ [0.1, 10]) and in the normalised coordinat
 (:func:`twoscale.shadowing.table_x`: ``x = 0`` at ``a^{−2p} = 200``, ``x = 1`` at
 ``a · E[R] = 1e7``), each axis extended by one node beyond each end. Λ comes from the exact path
 (trapezoidal quadrature, ~1e-11 relative). The grid sizes are the smallest round numbers whose
-measured maximum relative error in Λ and G1 (``python -m tables.check_smith``) stays well under
+measured maximum relative error in Λ and G1 (``python -m tablegen.check_smith``) stays well under
 1e-4 over the whole domain.
 """
 
@@ -104,7 +104,7 @@ def build(path: Path | None = None, *, n_p: int = N_P, n_x: int = N_X, pad_p: in
         name=shadowing.TABLE_NAME,
         version=VERSION,
         generator={
-            "module": "tables.build_smith",
+            "module": "tablegen.build_smith",
             "quantity": "log(Lambda / (a m(p))) + a^(-2p), m = Gamma(3/(2p))/(pi Gamma(1/p))",
             "exact_path": f"trapezoid in log(v - v0), {shadowing.QUAD_NODES} nodes",
             "domain": {

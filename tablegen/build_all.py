@@ -1,7 +1,7 @@
-"""Rebuild every precomputed table into ``twoscale/data/``: ``python -m tables.build_all``.
+"""Rebuild every precomputed table into ``twoscale/data/``: ``python -m tablegen.build_all``.
 
 Each generator is deterministic float64 code; its settings, grids and build time are stored in the
-table file. Pass table names to rebuild only those (``python -m tables.build_all smith renorm``).
+table file. Pass table names to rebuild only those (``python -m tablegen.build_all smith renorm``).
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import time
 from pathlib import Path
 
 GENERATORS = {
-    "smith": "tables.build_smith",
-    "renorm": "tables.build_renorm",
-    "convolution": "tables.build_convolution",
-    "spectral_presets": "tables.build_spectral_presets",
+    "smith": "tablegen.build_smith",
+    "renorm": "tablegen.build_renorm",
+    "convolution": "tablegen.build_convolution",
+    "spectral_presets": "tablegen.build_spectral_presets",
 }
 OUT_DIR = Path(__file__).resolve().parents[1] / "twoscale" / "data"
 

@@ -1,11 +1,11 @@
 """Accuracy of the convolution table against the exact quadrature.
 
-``python -m tables.check_convolution [--n N] [--seed S]`` prints, for ``N`` random parameter sets
+``python -m tablegen.check_convolution [--n N] [--seed S]`` prints, for ``N`` random parameter sets
 over the whole domain (β ∈ [1e-3, 1], p ∈ [0.2, 5], c ∈ [1.01, 5], u ∈ [0, 1000], log-uniform
 in β, p, c − 1 and uniform in asinh u), the relative error of ``lobe(path="tables")`` on a
 θ_h grid (0, geometric from 1e-4 to π/2, uniform; jittered away from the generator's nodes),
 counted where the exact lobe exceeds 1e-3 of its peak over that grid, by region.
-:func:`accuracy_rows` feeds ``python -m tables.report``.
+:func:`accuracy_rows` feeds ``python -m tablegen.report``.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def region_stats(e):
 
 
 def accuracy_rows(n_points: int = 2000, seed: int = 0) -> list[dict]:
-    """Rows for ``tables/ACCURACY.md``; ``n_points`` random parameter sets (×~80 θ_h each)."""
+    """Rows for ``tablegen/ACCURACY.md``; ``n_points`` random parameter sets (×~80 θ_h each)."""
     from twoscale import convolution
     from twoscale.tables import DATA_DIR, load_table
 

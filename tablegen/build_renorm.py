@@ -1,6 +1,6 @@
 """Build ``twoscale/data/renormalisation.npz``: the table of the renormalisation ratio R(s; B, c).
 
-Run from the repository root: ``python -m tables.build_renorm`` (deterministic; about a second
+Run from the repository root: ``python -m tablegen.build_renorm`` (deterministic; about a second
 on one core). What is stored and why is documented in :mod:`twoscale.psd`:
 
     q̃(log10 B, log10(c−1), x) = (1 + B⁻²) · log[R(s; B, c) / R(0; B, c)],
@@ -27,7 +27,7 @@ from twoscale.tables import DATA_DIR, Axis, save_table
 
 VERSION = 1
 
-# Physical domain (docs/model.md §3.5 / the task) and grid sizes (chosen by tables/check_renorm.py:
+# Physical domain (docs/model.md §3.5 / the task) and grid sizes (chosen by tablegen/check_renorm.py:
 # the smallest grid whose measured maximum relative error in R stays well under 1e-4).
 LOG10_B = (-2.0, 4.0)
 LOG10_C1 = (-2.0, math.log10(9.0))  # c − 1 ∈ [0.01, 9]
@@ -86,7 +86,7 @@ def build(path: Path | None = None, *, n_b: int = N_B, n_c: int = N_C, n_x: int 
         name="renormalisation",
         version=VERSION,
         generator={
-            "module": "tables.build_renorm",
+            "module": "tablegen.build_renorm",
             "quantity": "(1 + B^-2) * log(R(s;B,c) / R(0;B,c))",
             "quadrature": "Gauss-Legendre in v, psi = psi_c sinh v (twoscale.psd._scaled_exact)",
             "domain": {"log10_B": LOG10_B, "log10_c_minus_1": LOG10_C1, "s": [0.0, 1.0]},

@@ -11,7 +11,7 @@ Pages: Johnson & Christy (1972, 1974) for Ni, Au, Ag, Cu, Cr (the classic render
 ~15-50 nm apart in the visible, hence PCHIP); Rakić et al. (1998) Lorentz-Drude fit for Al (Johnson &
 Christy did not measure Al); Querry (1985) Cu70Zn30 for brass (common "cartridge" brass).
 
-Usage: ``python -m tables.build_spectral_presets [--source DIR] [--out FILE]`` (``--source``: the
+Usage: ``python -m tablegen.build_spectral_presets [--source DIR] [--out FILE]`` (``--source``: the
 ``ior_refractiveindex_info`` folder; default ``$TWOSCALE_SHARED/data/...`` or ``../shared/data/...``).
 """
 
@@ -110,7 +110,7 @@ def build(source: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
             "Sci. Data 11, 94 (2024)",
         },
         "presets": entries,
-        "generator": "tables/build_spectral_presets.py",
+        "generator": "tablegen/build_spectral_presets.py",
     }
     eta, k = np.array(eta), np.array(k)
     if not (np.all(np.isfinite(eta)) and np.all(np.isfinite(k)) and eta.min() > 0 and k.min() >= 0):

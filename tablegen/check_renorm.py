@@ -1,6 +1,6 @@
 """Accuracy of the renormalisation R(s; B, c): exact path vs SciPy, table path vs exact path.
 
-Run from the repository root: ``python -m tables.check_renorm`` prints one row per check.
+Run from the repository root: ``python -m tablegen.check_renorm`` prints one row per check.
 :func:`accuracy_rows` returns the same rows (used by the tests and the report).
 
 The SciPy reference integrates docs/model.md §3.5 as written (radial form around the specular point,
@@ -81,7 +81,7 @@ _DOMAIN_TEXT = "s∈[0,1], B∈[1e-2,1e4] log-unif, c−1∈[1e-2,9] log-unif, p
 
 
 def _row(name: str, pts: np.ndarray, got: np.ndarray, want: np.ndarray, domain: str = "") -> dict:
-    """One report row (the keys ``tables/report.py`` reads, plus the p99 and the worst point)."""
+    """One report row (the keys ``tablegen/report.py`` reads, plus the p99 and the worst point)."""
     err = np.abs(got / want - 1.0)
     k = int(np.argmax(err))
     worst = tuple(float(v) for v in pts[k])
@@ -111,7 +111,7 @@ def accuracy_rows(
 ) -> list[dict]:
     """Measured relative errors (float64). Requires ``jax_enable_x64``; enables it.
 
-    ``n_points`` (the argument ``tables/report.py`` passes) sets ``n_random`` and, scaled down,
+    ``n_points`` (the argument ``tablegen/report.py`` passes) sets ``n_random`` and, scaled down,
     ``n_scipy`` and ``n_outside``.
     """
     if n_points is not None:

@@ -1,6 +1,6 @@
 """Generate ``twoscale/data/convolution.npz``: tabulated values of the lobe ``(S*D)(θ_h)``.
 
-Run from the repository root: ``python -m tables.build_convolution`` (deterministic, one process,
+Run from the repository root: ``python -m tablegen.build_convolution`` (deterministic, one process,
 a few minutes on 2 cores). Representation (see :mod:`twoscale.convolution`):
 
 ``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t)``
@@ -134,7 +134,7 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         "version": 2,
         "axes": [a.__dict__ for a in ax],
         "components": [],
-        "generator": {**s, "module": "tables.build_convolution", "values_dtype": "float32"},
+        "generator": {**s, "module": "tablegen.build_convolution", "values_dtype": "float32"},
         "build_seconds": seconds,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
