@@ -34,6 +34,23 @@ def _random_dirs(n, seed, dtype=np.float64):
     return jnp.asarray(d[0], dtype), jnp.asarray(d[1], dtype)
 
 
+def _values_and_grads(cfg, batched=False):
+    """``jit`` of ``(p, wi, wo) -> (brdf, ∂Σbrdf/∂p, ∂Σbrdf/∂wi)``: one forward and one reverse
+    pass in one compiled function (``batched``: vmapped over a leading axis of ``p``).
+
+    The gradients of ``jnp.sum(brdf(...))`` are the pullback of ones, so this is ``jax.grad`` of
+    the sum with respect to ``p`` and to ``wi``; compiling the model's reverse pass is what these
+    tests pay for (≈ 10 s each), so one compile serves the values and both gradients.
+    """
+
+    def one(p, wi, wo):
+        vals, pullback = jax.vjp(lambda p_, wi_: brdf(p_, wi_, wo, cfg), p, wi)
+        g_params, g_wi = pullback(jnp.ones_like(vals))
+        return vals, g_params, g_wi
+
+    return jax.jit(jax.vmap(one, (0, None, None)) if batched else one)
+
+
 CONFIGS = [
     ModelConfig(material=m, q_mode=q, apparatus=(q == "F"))
     for m in ("conductor", "plastic", "subsurface")
@@ -86,24 +103,39 @@ def test_below_horizon_is_zero_with_finite_gradients():
     pairs = ((up, down), (down, up), (down, down), (flat, up), (up, flat))
     wi = jnp.stack([a for a, _ in pairs])
     wo = jnp.stack([b for _, b in pairs])
-    assert np.all(np.asarray(brdf(params, wi, wo, cfg)) == 0.0)
-    g = jax.grad(lambda p: jnp.sum(brdf(p, wi, wo, cfg)))(params)
+    # One compiled function: the values and the gradients of their sum with respect to the
+    # parameters and to the incoming directions (one reverse pass; a compile costs ~10 s).
+    vals, g, gd = _values_and_grads(cfg)(params, wi, wo)
+    assert np.all(np.asarray(vals) == 0.0)
     assert_finite_tree(g, "gradient below the horizon")
-    gd = jax.grad(lambda a: jnp.sum(brdf(params, a, wo, cfg)))(wi)
     assert_finite_tree(gd, "direction gradient below the horizon")
 
 
 # ------------------------------------------------------------------------------------ reductions
-@pytest.mark.parametrize("material", ["conductor", "plastic", "subsurface"])
-def test_sigma_zero_is_exactly_cook_torrance(material):
+def _check_sigma_zero(material):
     params = _params(material, sigma_s=0.0)
     wi, wo = _random_dirs(50, 2)
     on = lobes(params, wi, wo, ModelConfig(material=material))
     off = lobes(params, wi, wo, ModelConfig(material=material, diffraction=False))
     assert np.all(np.asarray(on["diffraction"]) == 0.0)
     np.testing.assert_array_equal(np.asarray(on["specular"]), np.asarray(off["specular"]))
-    g = jax.grad(lambda p: jnp.sum(brdf(p, wi, wo, ModelConfig(material=material))))(params)
+    cfg = ModelConfig(material=material)
+    # jit of the gradient: one compiled reverse pass (eager grad compiles two programs).
+    g = jax.jit(jax.grad(lambda p: jnp.sum(brdf(p, wi, wo, cfg))))(params)
     assert_finite_tree(g, "gradient at σ_s = 0")
+
+
+@pytest.mark.parametrize("material", ["conductor", "plastic"])
+def test_sigma_zero_is_exactly_cook_torrance(material):
+    _check_sigma_zero(material)
+
+
+@pytest.mark.slow
+def test_sigma_zero_is_exactly_cook_torrance_subsurface():
+    """The subsurface material: σ_s enters only the specular and diffraction lobes, whose code
+    (dielectric Fresnel) test_sigma_zero_is_exactly_cook_torrance[plastic] runs by default; the
+    subsurface body does not depend on σ_s."""
+    _check_sigma_zero("subsurface")
 
 
 def _textbook_beckmann_conductor(wi, wo, alpha, eta, k):
@@ -287,47 +319,66 @@ def _extreme_batch(material):
     return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-@pytest.mark.parametrize(
-    "cfg",
-    [
-        ModelConfig(apparatus=True),
-        ModelConfig(q_mode="full", shadowing="uncorrelated"),
-        ModelConfig(material="plastic", apparatus=True),
-        ModelConfig(material="subsurface", q_mode="full"),
-    ],
-    ids=_cfg_id,
-)
-def test_extremes_values_and_gradients_finite(cfg, dtype):
+EXTREME_CONFIGS = {
+    "conductor-app": ModelConfig(apparatus=True),
+    "conductor-full-uncorrelated": ModelConfig(q_mode="full", shadowing="uncorrelated"),
+    "plastic-app": ModelConfig(material="plastic", apparatus=True),
+    "subsurface-full": ModelConfig(material="subsurface", q_mode="full"),
+}
+# The default run: every configuration but conductor-app (its code: the conductor's Fresnel in
+# conductor-full-uncorrelated, Q = 2F, correlated G and the apparatus factor in plastic-app), both
+# dtypes; the slow run adds the other dtype of each configuration.
+EXTREME_CASES = [
+    ("conductor-full-uncorrelated", jnp.float32),
+    ("plastic-app", jnp.float64),
+    ("subsurface-full", jnp.float32),
+]
+EXTREME_CASES_SLOW = [
+    ("conductor-app", jnp.float32),
+    ("conductor-app", jnp.float64),
+    ("conductor-full-uncorrelated", jnp.float64),
+    ("plastic-app", jnp.float32),
+    ("subsurface-full", jnp.float64),
+]
+
+
+def _check_extremes(name, dtype):
+    """Every corner of the parameter ranges × the extreme directions: values finite and ≥ 0, the
+    dtype kept, gradients with respect to the parameters and to the directions finite."""
+    cfg = EXTREME_CONFIGS[name]
     batch = _extreme_batch(cfg.material).astype(dtype)
     wi, wo = _dirs(EXTREME_DIRS, dtype)
-
-    def total(p):
-        return jnp.sum(brdf(p, wi, wo, cfg))
-
-    vals = jax.jit(jax.vmap(lambda p: brdf(p, wi, wo, cfg)))(batch)
+    vals, grads, gdir = _values_and_grads(cfg, batched=True)(batch, wi, wo)
     assert vals.dtype == dtype
     assert np.all(np.isfinite(np.asarray(vals))) and np.all(np.asarray(vals) >= 0.0)
-    grads = jax.jit(jax.vmap(jax.grad(total)))(batch)
     assert_finite_tree(grads, f"gradient ({jnp.dtype(dtype).name})")
-    gdir = jax.jit(jax.vmap(jax.grad(lambda a, p: jnp.sum(brdf(p, a, wo, cfg))), (None, 0)))(
-        wi, batch
-    )
     assert_finite_tree(gdir, "direction gradient")
 
 
-# ------------------------------------------------------------------------------------ gradients
+@pytest.mark.parametrize(("name", "dtype"), EXTREME_CASES, ids=lambda x: getattr(x, "__name__", x))
+def test_extremes_values_and_gradients_finite(name, dtype):
+    _check_extremes(name, dtype)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize(
-    "cfg",
-    [
-        ModelConfig(apparatus=True),
-        ModelConfig(q_mode="full"),
-        ModelConfig(material="plastic", apparatus=True),
-        ModelConfig(material="subsurface", shadowing="uncorrelated"),
-    ],
-    ids=_cfg_id,
+    ("name", "dtype"), EXTREME_CASES_SLOW, ids=lambda x: getattr(x, "__name__", x)
 )
-def test_check_grads_every_parameter(cfg):
+def test_extremes_values_and_gradients_finite_other_dtypes(name, dtype):
+    """The rest of the 4 configurations × 2 dtypes; test_extremes_values_and_gradients_finite
+    runs the same code (each configuration's, each dtype) in the default run."""
+    _check_extremes(name, dtype)
+
+
+# ------------------------------------------------------------------------------------ gradients
+GRAD_CONFIGS = [
+    ModelConfig(q_mode="full"),
+    ModelConfig(material="plastic", apparatus=True),
+    ModelConfig(material="subsurface", shadowing="uncorrelated"),
+]
+
+
+def _check_grads(cfg):
     params = _params(cfg.material).for_config(cfg)
     wi, wo = _random_dirs(6, 4)
     names = list(params.fields())
@@ -337,6 +388,19 @@ def test_check_grads_every_parameter(cfg):
 
     leaves = [getattr(params, n) for n in names]
     check_grads(f, leaves, order=1, modes=("fwd", "rev"), eps=1e-6, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("cfg", GRAD_CONFIGS, ids=_cfg_id)
+def test_check_grads_every_parameter(cfg):
+    _check_grads(cfg)
+
+
+@pytest.mark.slow
+def test_check_grads_every_parameter_conductor_apparatus():
+    """The conductor with the apparatus factor (Q = 2F, correlated G): its code is checked in the
+    default run by test_check_grads_every_parameter (conductor Fresnel in the full-Q case; Q = 2F,
+    correlated G and the apparatus factor in the plastic case)."""
+    _check_grads(ModelConfig(apparatus=True))
 
 
 # ------------------------------------------------------------------------------------ transformations

@@ -3,7 +3,7 @@
 Each notebook is executed with nbclient in a fresh ``python3`` kernel of the interpreter running the
 tests (a kernel spec written for ``sys.executable`` into a temporary ``JUPYTER_PATH``, so that a
 ``python3`` kernel registered elsewhere cannot run another environment), in a temporary working
-directory. A run passes when every cell executes without an error, no Python warning is printed,
+directory; two notebooks run at once (one kernel each). A run passes when every cell executes without an error, no Python warning is printed,
 at least one ``image/png`` output is produced, and the kernel reports ``sys.executable`` to be
 this interpreter. The tests skip, naming the reason, when nbclient or ipykernel is missing
 (``pip install -e .[test]`` installs both).
@@ -11,6 +11,7 @@ this interpreter. The tests skip, naming the reason, when nbclient or ipykernel 
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -29,6 +30,8 @@ CELL_TIMEOUT = 300
 X64_LINE = 'jax.config.update("jax_enable_x64", True)'
 #: A Python warning as ``warnings.showwarning`` prints it (``file:line: CategoryWarning: text``).
 WARNING_LINE = re.compile(r":\d+: \w*Warning: ")
+#: Notebooks executed at once (two cores: each kernel mostly compiles on one).
+PARALLEL = 2
 #: The cell appended to each executed copy: the kernel's interpreter.
 EXECUTABLE_PROBE = "import sys\nprint('sys.executable =', sys.executable)"
 
@@ -93,7 +96,7 @@ def kernel_name(tmp_path_factory):
         yield "python3"
 
 
-def _execute(path: Path, kernel: str, cwd: Path):
+async def _execute(path: Path, kernel: str, cwd: Path):
     import nbformat
     from nbclient import NotebookClient
 
@@ -107,8 +110,30 @@ def _execute(path: Path, kernel: str, cwd: Path):
         resources={"metadata": {"path": str(cwd)}},  # the kernel's working directory
     )
     t0 = time.perf_counter()
-    client.execute()
+    await client.async_execute()
     return nb, time.perf_counter() - t0
+
+
+@pytest.fixture(scope="module")
+def executed(kernel_name, tmp_path_factory):
+    """Every notebook executed, ``PARALLEL`` kernels at a time: ``{stem: (nb, seconds)}``, or the
+    exception its execution raised (re-raised by its own test).
+
+    Each kernel compiles on one core most of the time, so two at once take about half the wall
+    time of one after the other on two cores; every notebook still runs in its own fresh kernel
+    and temporary working directory, and each is checked by its own test below.
+    """
+
+    async def run_all():
+        gate = asyncio.Semaphore(PARALLEL)
+
+        async def one(path):
+            async with gate:
+                return await _execute(path, kernel_name, tmp_path_factory.mktemp(path.stem))
+
+        return await asyncio.gather(*(one(p) for p in NOTEBOOKS), return_exceptions=True)
+
+    return dict(zip(_ids(NOTEBOOKS), asyncio.run(run_all()), strict=True))
 
 
 def _outputs(nb):
@@ -118,8 +143,11 @@ def _outputs(nb):
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
-def test_notebook_runs(path, kernel_name, tmp_path, record_property):
-    nb, seconds = _execute(path, kernel_name, tmp_path)
+def test_notebook_runs(path, executed, record_property):
+    result = executed[path.stem]
+    if isinstance(result, BaseException):
+        raise result
+    nb, seconds = result
     record_property("seconds", round(seconds, 1))
     outputs = list(_outputs(nb))
 
