@@ -83,30 +83,41 @@ def _small_grid(convention="lower"):
     return g, wi, wo
 
 
-@pytest.mark.parametrize("case", [0, 1])
-def test_brdf_grid_gradients_match_brdf(case):
-    """Parameter gradients of the grid path equal those of brdf at the same directions."""
+def _check_grid_gradients(case):
+    """Parameter gradients of the grid path equal those of brdf at the same directions, and its
+    forward-mode Jacobian (the fit's) equals its reverse-mode one (through the custom JVP rule of
+    G). Three compiled functions: the grid path's reverse and forward Jacobians, and brdf's
+    reverse gradient of a weighted sum, which the reverse Jacobian contracted with the weights
+    must reproduce."""
     params, cfg = CASES[case]
     grid, wi, wo = _small_grid()
-    weights = jnp.asarray(np.random.default_rng(0).random(wi.shape[:-1] + (3,)))
-
-    def loss_grid(p):
-        return jnp.sum(weights * model.brdf_grid(p, grid, cfg))
+    weights = np.random.default_rng(0).random(wi.shape[:-1] + (3,))
 
     def loss_ref(p):
-        return jnp.sum(weights * model.brdf(p, wi, wo, cfg))
+        return jnp.sum(jnp.asarray(weights) * model.brdf(p, wi, wo, cfg))
 
-    for a, b in zip(
-        jax.tree_util.tree_leaves(jax.grad(loss_grid)(params)),
-        jax.tree_util.tree_leaves(jax.grad(loss_ref)(params)),
-        strict=True,
-    ):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
-    # Forward mode (the fit's) agrees with reverse mode through the custom JVP rule of G.
-    jf = jax.jacfwd(lambda p: model.brdf_grid(p, grid, cfg))(params)
-    jr = jax.jacrev(lambda p: model.brdf_grid(p, grid, cfg))(params)
+    jr = jax.jit(jax.jacrev(lambda p: model.brdf_grid(p, grid, cfg)))(params)
+    jf = jax.jit(jax.jacfwd(lambda p: model.brdf_grid(p, grid, cfg)))(params)
+    ref = jax.jit(jax.grad(loss_ref))(params)
+    for a, b in zip(jax.tree_util.tree_leaves(jr), jax.tree_util.tree_leaves(ref), strict=True):
+        grad_grid = np.tensordot(weights, np.asarray(a), axes=weights.ndim)
+        np.testing.assert_allclose(grad_grid, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
     for a, b in zip(jax.tree_util.tree_leaves(jf), jax.tree_util.tree_leaves(jr), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
+
+
+def test_brdf_grid_gradients_match_brdf():
+    """The plastic with full Q and the apparatus factor (CASES[1])."""
+    _check_grid_gradients(1)
+
+
+@pytest.mark.slow
+def test_brdf_grid_gradients_match_brdf_conductor():
+    """The conductor (CASES[0]). By default its grid-path derivatives are checked in forward mode
+    (the fit's) by test_factorised_normal_equations_match_jacfwd (the same per-bin terms and
+    per-cell total as brdf_grid), and the reverse-mode path by test_brdf_grid_gradients_match_brdf.
+    """
+    _check_grid_gradients(0)
 
 
 def test_shadowing_rule_matches_finite_differences():
@@ -161,8 +172,8 @@ def test_factorised_normal_equations_match_jacfwd(conductor_data):
         cos = cells.cos_i[:, None]
         return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
 
-    r = full(y)
-    jac = jax.jacfwd(full)(y)
+    r = jax.jit(full)(y)  # jitted: eager, every small op compiles on its own
+    jac = jax.jit(jax.jacfwd(full))(y)
     jtj, jtr, rr = normal_equations(problem, y, frozen, data, jnp.int32(n_active))
     np.testing.assert_allclose(rr, r @ r, rtol=1e-9)
     np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-7, atol=1e-11 * np.abs(jtj).max())
