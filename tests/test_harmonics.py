@@ -33,6 +33,7 @@ def _f64(*args):
     return tuple(jnp.asarray(a, F64) for a in args)
 
 
+@functools.cache  # one jitted function per l_max: tests and cases with equal shapes share its compile
 def _harm(l_max):
     return jax.jit(lambda *a: lobe_harmonic(*a, l_max=l_max))
 
