@@ -826,7 +826,7 @@ def main(argv=None) -> int:
                 log(f"  failed: {row.error}")
             rows.append(row)
             if gallery is not None and "full" in results:
-                picture = _draw_picture(gallery, row, results, data, log)
+                picture = _draw_picture(gallery, row, results, data, log, records)
                 if picture is not None:
                     pictures[name] = picture
             # Rewrite the report after every material: a long campaign can be watched.
@@ -840,14 +840,17 @@ def main(argv=None) -> int:
     return 0
 
 
-def _draw_picture(gallery: Path, row: Row, results: dict, data, log) -> Path | None:
+def _draw_picture(gallery: Path, row: Row, results: dict, data, log, records=None) -> Path | None:
     """The material's gallery tile (two-scale and GGX + Lambert); kept when all four fits came
-    from records and the picture exists. A drawing error is logged, not raised."""
+    from records and the picture is newer than every one of them (a picture drawn from older
+    fits is drawn again). A drawing error is logged, not raised."""
     from campaigns.gallery import draw_tile
 
     path = gallery / f"{row.name}.png"
-    if path.exists() and set(row.resumed) >= set(MODELS):
-        return path
+    if path.exists() and set(row.resumed) >= set(MODELS) and records is not None:
+        made = [p.stat().st_mtime for p in (Path(records) / row.name).glob("*.json")]
+        if made and path.stat().st_mtime >= max(made):
+            return path
     shown = {LABELS[k]: results[k] for k in ("full", "ggx") if k in results}
     title = f"{row.name}: two-scale ({row.material}) log RMSE {row.rmse_log['full']:.3f}"
     if "ggx" in row.rmse_log:
