@@ -357,8 +357,8 @@ def fit_material(
 
     full = run("full", merl_protocol(apparatus=apparatus), "auto")
     row.material = full.material
-    # The special case under the full fit's own configuration (the same protocol), lobe off.
-    run("specular", dataclasses.replace(full.model_config, diffraction=False), full.material)
+    # The special case under the same protocol, its lobe off, with the full fit's material type.
+    run("specular", merl_protocol(apparatus=apparatus, diffraction=False), full.material)
     for key in BASELINES:
         run(key, _baseline_config(key, apparatus))
     return row, results, data
