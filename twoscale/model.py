@@ -533,37 +533,12 @@ def brdf_merl(params: TwoScaleParams, config: ModelConfig = ModelConfig(), conve
 _ALBEDO_EDGES = tuple(1e-4 * 2.0**k for k in range(15))
 
 
-@functools.partial(jax.jit, static_argnames=("config", "n_theta", "n_phi"))
-def albedo(
-    params: TwoScaleParams,
-    cos_theta_i,
-    config: ModelConfig = ModelConfig(),
-    n_theta: int = 8,
-    n_phi: int = 32,
-):
-    """Directional albedo ``a(θ_i) = ∫ ρ(i, o) cos θ_o dω_o`` over the upper hemisphere.
-
-    Quadrature in half-vector coordinates around the normal (``o = 2(i·h)h − i``,
-    ``dω_o = 4 (i·h) dω_h``), where both lobes are functions of θ_h peaked at 0. θ_h is split into
-    geometric panels ``[1e-4·2^k, 1e-4·2^(k+1)]`` (resolving lobes from β = 1e-3 to β = 1) with
-    ``n_theta`` Gauss-Legendre nodes each, plus panel ends at ``π/4 − θ_i/2`` (beyond it part of
-    the φ_h circle sends ``o`` below the horizon) and ``θ_h,max = π/4 + θ_i/2``. For each θ_h the
-    visible φ_h range ``[0, φ_max]``, ``cos φ_max = −cot θ_i cot 2θ_h``, is computed exactly and
-    integrated with ``n_phi`` Gauss-Legendre nodes (×2 by the mirror symmetry of ρ about the
-    plane of incidence). So no node falls below the horizon and no integrand has a kink inside a
-    panel. Accuracy at the defaults: see ``tests/test_model.py::test_albedo_quadrature``
-    (≲ 1e-4 relative against a dense reference for rough and narrow lobes).
-
-    Args:
-        params, config: as for :func:`brdf`.
-        cos_theta_i: cosines of the incidence angle, any shape, in (0, 1].
-        n_theta: Gauss-Legendre nodes per θ_h panel (static).
-        n_phi: Gauss-Legendre nodes on ``[0, φ_max]`` (static).
-    Returns:
-        ``(*cos_theta_i.shape, config.n_channels)``.
-    """
-    dtype = float_dtype(cos_theta_i, *jax.tree_util.tree_leaves(params))
-    ct_i = jnp.clip(jnp.asarray(cos_theta_i, dtype), 0.0, 1.0)[..., None]  # (..., 1)
+def albedo_nodes(ct_i, n_theta: int = 8, n_phi: int = 32):
+    """Nodes and weights of :func:`albedo`'s quadrature at incidence cosines ``ct_i`` (``(..., 1)``,
+    in [0, 1]): ``(wi, wo, jac)`` with ``∫ f(o) cos θ_o dω_o ≈ Σ f(wo) jac`` over the last two
+    axes (``(..., T, P)``; ``wi`` broadcasts against ``wo``). Also used by the sampler's lobe
+    weights."""
+    dtype = ct_i.dtype
     st_i = safe_sqrt((1.0 - ct_i) * (1.0 + ct_i))
     theta_i = jnp.arctan2(st_i, ct_i)
 
@@ -597,7 +572,42 @@ def albedo(
     wi = jnp.stack(jnp.broadcast_arrays(st_i, jnp.zeros_like(st_i), ct_i), axis=-1)[..., None, :, :]
     i_dot_h = jnp.sum(wi * h, axis=-1)
     wo = 2.0 * i_dot_h[..., None] * h - wi
-    rho = brdf(params, wi, wo, config)  # (..., T, P, C)
     # ∫ ρ cos θ_o dω_o = 2 ∫∫ ρ cos θ_o · 4 (i·h) sin θ_h dφ_h dθ_h
     jac = 8.0 * jnp.clip(wo[..., 2], 0.0, None) * i_dot_h * st_h * w_phi * w_theta[..., None]
+    return wi, wo, jac
+
+
+@functools.partial(jax.jit, static_argnames=("config", "n_theta", "n_phi"))
+def albedo(
+    params: TwoScaleParams,
+    cos_theta_i,
+    config: ModelConfig = ModelConfig(),
+    n_theta: int = 8,
+    n_phi: int = 32,
+):
+    """Directional albedo ``a(θ_i) = ∫ ρ(i, o) cos θ_o dω_o`` over the upper hemisphere.
+
+    Quadrature in half-vector coordinates around the normal (``o = 2(i·h)h − i``,
+    ``dω_o = 4 (i·h) dω_h``), where both lobes are functions of θ_h peaked at 0. θ_h is split into
+    geometric panels ``[1e-4·2^k, 1e-4·2^(k+1)]`` (resolving lobes from β = 1e-3 to β = 1) with
+    ``n_theta`` Gauss-Legendre nodes each, plus panel ends at ``π/4 − θ_i/2`` (beyond it part of
+    the φ_h circle sends ``o`` below the horizon) and ``θ_h,max = π/4 + θ_i/2``. For each θ_h the
+    visible φ_h range ``[0, φ_max]``, ``cos φ_max = −cot θ_i cot 2θ_h``, is computed exactly and
+    integrated with ``n_phi`` Gauss-Legendre nodes (×2 by the mirror symmetry of ρ about the
+    plane of incidence). So no node falls below the horizon and no integrand has a kink inside a
+    panel. Accuracy at the defaults: see ``tests/test_model.py::test_albedo_quadrature``
+    (≲ 1e-4 relative against a dense reference for rough and narrow lobes).
+
+    Args:
+        params, config: as for :func:`brdf`.
+        cos_theta_i: cosines of the incidence angle, any shape, in (0, 1].
+        n_theta: Gauss-Legendre nodes per θ_h panel (static).
+        n_phi: Gauss-Legendre nodes on ``[0, φ_max]`` (static).
+    Returns:
+        ``(*cos_theta_i.shape, config.n_channels)``.
+    """
+    dtype = float_dtype(cos_theta_i, *jax.tree_util.tree_leaves(params))
+    ct_i = jnp.clip(jnp.asarray(cos_theta_i, dtype), 0.0, 1.0)[..., None]  # (..., 1)
+    wi, wo, jac = albedo_nodes(ct_i, n_theta, n_phi)
+    rho = brdf(params, wi, wo, config)  # (..., T, P, C)
     return jnp.sum(rho * jac[..., None], axis=(-3, -2))

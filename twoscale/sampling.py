@@ -137,34 +137,8 @@ def _lobe_albedos(params, cos_theta_i, cfg: ModelConfig, n_theta: int, n_phi: in
     horizon kink, the visible φ_h range computed exactly), applied to :func:`model.lobes`.
     """
     ct_i = jnp.asarray(cos_theta_i, dtype)[:, None]  # (K, 1)
-    st_i = safe_sqrt((1.0 - ct_i) * (1.0 + ct_i))
-    theta_i = jnp.arctan2(st_i, ct_i)
-    th_max = 0.25 * math.pi + 0.5 * theta_i
-    kink = 0.25 * math.pi - 0.5 * theta_i
-    geo = jnp.broadcast_to(jnp.asarray(model._ALBEDO_EDGES, dtype), (ct_i.shape[0], 15))
-    edges = jnp.concatenate([jnp.zeros_like(ct_i), geo, kink, th_max], axis=-1)
-    edges = jnp.sort(jnp.minimum(edges, th_max), axis=-1)
-    x, w = (jnp.asarray(a, dtype) for a in gauss_legendre(n_theta))
-    lo, width = edges[:, :-1, None], jnp.diff(edges, axis=-1)[..., None]
-    theta_h = (lo + width * x).reshape(ct_i.shape[0], -1)  # (K, T)
-    w_theta = (width * w).reshape(theta_h.shape)
-    num = -ct_i * jnp.cos(2.0 * theta_h)
-    den = st_i * jnp.sin(2.0 * theta_h)
-    cmax = num / jnp.maximum(den, tiny(dtype))
-    inside = jnp.abs(cmax) < 1.0
-    phi_max = jnp.where(
-        inside, jnp.arccos(jnp.where(inside, cmax, 0.0)), jnp.where(cmax >= 1.0, 0.0, math.pi)
-    )
-    xp, wp = (jnp.asarray(a, dtype) for a in gauss_legendre(n_phi))
-    phi_h = phi_max[..., None] * xp  # (K, T, P)
-    w_phi = phi_max[..., None] * wp
-    st_h, ct_h = jnp.sin(theta_h)[..., None], jnp.cos(theta_h)[..., None]
-    h = jnp.stack(jnp.broadcast_arrays(st_h * jnp.cos(phi_h), st_h * jnp.sin(phi_h), ct_h), -1)
-    wi = jnp.stack(jnp.broadcast_arrays(st_i, jnp.zeros_like(st_i), ct_i), -1)[:, None, :, :]
-    i_dot_h = jnp.sum(wi * h, axis=-1)
-    wo = 2.0 * i_dot_h[..., None] * h - wi
+    wi, wo, jac = model.albedo_nodes(ct_i, n_theta, n_phi)  # (K, T, P)
     parts = model.lobes(params, wi, wo, cfg)  # {name: (K, T, P, C)}
-    jac = 8.0 * jnp.clip(wo[..., 2], 0.0, None) * i_dot_h * st_h * w_phi * w_theta[..., None]
     return {k: jnp.sum(v * jac[..., None], axis=(-3, -2)) for k, v in parts.items()}
 
 
