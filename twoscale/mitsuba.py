@@ -99,13 +99,15 @@ def _import(variant: str | None = None):
         variant = mi.variant()
     if variant is None:
         variant = "cuda_ad_rgb" if dr.has_backend(dr.JitBackend.CUDA) else "llvm_ad_rgb"
-    if mi.variant() != variant:
-        mi.set_variant(variant)
-    if variant.startswith("llvm"):
-        try:
+    try:
+        if mi.variant() != variant:
+            mi.set_variant(variant)
+        if variant.startswith("llvm"):
             dr.eval(mi.Float([0.0]))
-        except Exception as err:  # Dr.Jit raises ImportError when libLLVM is missing
-            raise RuntimeError(f"{_LLVM_HELP} ({type(err).__name__}: {err})") from err
+    except ImportError as err:  # Dr.Jit raises ImportError when libLLVM is missing
+        if not variant.startswith("llvm"):
+            raise
+        raise RuntimeError(f"{_LLVM_HELP} ({type(err).__name__}: {err})") from err
     return mi, dr
 
 
