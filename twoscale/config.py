@@ -17,6 +17,7 @@ Q_MODES = ("2F", "F", "full")
 SHADOWING = ("correlated", "uncorrelated")
 PATHS = ("tables", "exact")
 SPECTRAL_OUTPUTS = ("rgb", "spectrum")
+FRESNEL_FORMS = ("exact", "schlick")
 
 # Canonical order of the parameters (as in the paper's list, §4, plus the apparatus exponent).
 PARAM_ORDER = ("beta", "p", "sigma_s", "b", "c", "eta", "k", "rho_d", "e")
@@ -54,6 +55,14 @@ class ModelConfig:
             specular and diffraction lobes, which the varnish's η then no longer darkens towards
             grazing angles (the form MERL's diffuse-dominated materials follow; see §8). Applies
             to the plastic; ignored for the other materials.
+        fresnel: the reflectance of a dielectric coat (plastic, subsurface) in the specular and
+            diffraction lobes and in the diffuse layer's transmissions: ``"exact"`` (the
+            unpolarised Fresnel equations; reference; default) or ``"schlick"`` (Schlick's form
+            ``F0 + (1 − F0)(1 − cos θ)⁵`` with the same ``F0(η)``, flatter at mid angles and steeper
+            towards grazing; the fitter chooses it where measured data follow it better,
+            docs/model.md §8). Conductors keep the exact ``(η, k)`` form (Schlick's would leave
+            ``η`` and ``k`` one value per channel to share); the full polarisation factor
+            (``q_mode="full"``) needs the exact form.
         path: ``"tables"`` (precomputed C² spline tables; fast) or ``"exact"`` (quadrature).
         wavelengths: wavelengths in µm at which the model is evaluated; the default is the three
             RGB wavelengths (0.645, 0.526, 0.444), one per output channel.
@@ -72,6 +81,7 @@ class ModelConfig:
     apparatus: bool = False
     diffuse_eta2: bool = False
     diffuse_fresnel: bool = True
+    fresnel: str = "exact"
     path: str = "tables"
     wavelengths: tuple[float, ...] = field(default=RGB_WAVELENGTHS)
     spectral_output: str = "rgb"
@@ -83,6 +93,17 @@ class ModelConfig:
         _choice("shadowing", self.shadowing, SHADOWING)
         _choice("path", self.path, PATHS)
         _choice("spectral_output", self.spectral_output, SPECTRAL_OUTPUTS)
+        _choice("fresnel", self.fresnel, FRESNEL_FORMS)
+        if self.fresnel == "schlick":
+            if self.material == "conductor":
+                raise ValueError(
+                    "ModelConfig: fresnel='schlick' is a dielectric coat's form; a conductor keeps "
+                    "the exact (η, k) reflectance"
+                )
+            if self.q_mode == "full":
+                raise ValueError(
+                    "ModelConfig: q_mode='full' (the full polarisation factor) needs fresnel='exact'"
+                )
         for name in (
             "specular",
             "diffraction",

@@ -117,6 +117,13 @@ def apparatus_factor(cos_theta, e):
     return jnp.where(base > 0.0, jnp.exp(e * safe_log(base)), 0.0)
 
 
+def _coat_fresnel(cfg: ModelConfig, cos_theta, eta):
+    """A dielectric coat's reflectance in the form ``cfg.fresnel`` names [docs/model.md §3.1]."""
+    if cfg.fresnel == "schlick":
+        return fresnel.schlick(cos_theta, eta)
+    return fresnel.dielectric(cos_theta, eta)
+
+
 def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     """Diffuse layer of a dielectric [docs/model.md §3.9]; per channel, shape ``(..., N)``.
 
@@ -128,8 +135,8 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     """
     if cfg.material == "plastic" and not cfg.diffuse_fresnel:  # a Lambertian body
         return jnp.broadcast_to(rho_d / math.pi, jnp.broadcast_shapes(cos_i.shape, rho_d.shape))
-    t_i = 1.0 - fresnel.dielectric(cos_i, eta)
-    t_o = 1.0 - fresnel.dielectric(cos_o, eta)
+    t_i = 1.0 - _coat_fresnel(cfg, cos_i, eta)
+    t_o = 1.0 - _coat_fresnel(cfg, cos_o, eta)
     if cfg.material == "plastic":
         f_dr = fresnel.diffuse_fresnel(1.0 / eta_bar)
         # Optional radiance compression 1/η̄²: with it 1 − F_dr(1/η̄) ≈ (1 − F_dr(η̄))/η̄², so a
@@ -297,7 +304,7 @@ def _half_diff_terms(ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig) -> di
     if not (cfg.specular or cfg.diffraction):
         return out
     cd = cos_d[..., None]  # channel axis last
-    f = fresnel.conductor(cd, ch.eta, ch.k) if cfg.is_conductor else fresnel.dielectric(cd, ch.eta)
+    f = fresnel.conductor(cd, ch.eta, ch.k) if cfg.is_conductor else _coat_fresnel(cfg, cd, ch.eta)
     if cfg.diffraction:
         beta, p, sigma_s, b, c = (ch.par[n] for n in ("beta", "p", "sigma_s", "b", "c"))
         big_b = b / ch.wl  # B = b/λ per channel

@@ -1,0 +1,139 @@
+"""Schlick's form of a dielectric coat's Fresnel reflectance (``ModelConfig(fresnel="schlick")``,
+docs/model.md §3.1) and the fit's choice between it and the exact equations (§8)."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import twoscale
+from twoscale import ModelConfig, TwoScaleParams, fresnel
+from twoscale.fit import Stage, fit, synthetic
+from twoscale.fit.material_type import (
+    FRESNEL_TIE_RTOL,
+    choose_fresnel,
+    fresnel_choice_applies,
+    resolve_fresnel,
+)
+
+EXACT = ModelConfig(material="plastic", diffuse_fresnel=False)
+SCHLICK = dataclasses.replace(EXACT, fresnel="schlick")
+PARAMS = TwoScaleParams.plastic(
+    0.12, 1.3, (1.9, 1.7, 1.5), (0.25, 0.4, 0.6), sigma_s=0.02, b=1.2, c=2.0
+)
+WI = jnp.array([[0.3, 0.0, 0.954], [0.0, 0.8, 0.6], [0.99, 0.0, 0.141]])
+WO = jnp.array([[-0.3, 0.0, 0.954], [0.5, -0.2, 0.843], [-0.7, 0.1, 0.707]])
+WI, WO = (v / jnp.linalg.norm(v, axis=-1, keepdims=True) for v in (WI, WO))
+
+
+def test_schlick_values_ends_and_dtype():
+    eta = jnp.array([1.0, 1.5, 1.95, 4.0])
+    f0 = ((eta - 1) / (eta + 1)) ** 2
+    np.testing.assert_allclose(fresnel.schlick(1.0, eta), f0, rtol=1e-15)
+    np.testing.assert_allclose(fresnel.schlick(1.0, eta), fresnel.dielectric(1.0, eta), rtol=1e-12)
+    np.testing.assert_allclose(fresnel.schlick(0.0, eta), 1.0)
+    c = math.cos(math.radians(60.0))
+    e = (1 + math.sqrt(0.107)) / (1 - math.sqrt(0.107))  # F0 = 0.107, η ≈ 1.97
+    np.testing.assert_allclose(fresnel.schlick(c, e), 0.107 + 0.893 * 0.5**5, rtol=1e-12)
+    # Flatter than the exact curve at mid angles, steeper towards grazing (docstring's numbers).
+    np.testing.assert_allclose(fresnel.dielectric(c, e), 0.158, atol=5e-4)
+    c85 = math.cos(math.radians(85.0))
+    np.testing.assert_allclose(fresnel.schlick(c85, e), 0.673, atol=5e-4)
+    np.testing.assert_allclose(fresnel.dielectric(c85, e), 0.630, atol=5e-4)
+    out = fresnel.schlick(jnp.float32(0.5), jnp.float32(1.5))
+    assert out.dtype == jnp.float32
+    # Gradients finite at both ends and at η = 1.
+    for cos in (0.0, 1.0, 0.3):
+        g = jax.grad(lambda x, e: fresnel.schlick(x, e), argnums=(0, 1))(cos, 1.0)
+        assert all(np.isfinite(float(v)) for v in g)
+
+
+def test_schlick_config():
+    with pytest.raises(ValueError, match="conductor keeps"):
+        ModelConfig(fresnel="schlick")
+    with pytest.raises(ValueError, match="q_mode='full'"):
+        ModelConfig(material="plastic", fresnel="schlick", q_mode="full")
+    with pytest.raises(ValueError, match="fresnel"):
+        ModelConfig(material="plastic", fresnel="approximate")
+    from twoscale.fit.adapters import config_from_dict, config_to_dict
+
+    assert config_from_dict(config_to_dict(SCHLICK)) == SCHLICK
+    old = {k: v for k, v in config_to_dict(EXACT).items() if k != "fresnel"}  # an older record
+    assert config_from_dict(old).fresnel == "exact"
+
+
+@pytest.mark.parametrize("diffuse_fresnel", [False, True])
+def test_schlick_replaces_the_coat_reflectance_only(diffuse_fresnel):
+    ex = dataclasses.replace(EXACT, diffuse_fresnel=diffuse_fresnel)
+    sc = dataclasses.replace(SCHLICK, diffuse_fresnel=diffuse_fresnel)
+    a, b = twoscale.lobes(PARAMS, WI, WO, ex), twoscale.lobes(PARAMS, WI, WO, sc)
+    h = (WI + WO) / jnp.linalg.norm(WI + WO, axis=-1, keepdims=True)
+    cd = jnp.sum(WI * h, axis=-1)[:, None]
+    ratio = fresnel.schlick(cd, PARAMS.eta) / fresnel.dielectric(cd, PARAMS.eta)
+    # The specular lobe is A_s F D G ...; the diffraction lobe carries Q = 2F: both scale by F.
+    for name in ("specular", "diffraction"):
+        np.testing.assert_allclose(b[name], a[name] * ratio, rtol=1e-10)
+    if diffuse_fresnel:  # the varnish's transmissions 1 − F follow the coat's form
+        t = lambda f, c: 1.0 - f(c[:, None], PARAMS.eta)  # noqa: E731
+        r = (t(fresnel.schlick, WI[:, 2]) * t(fresnel.schlick, WO[:, 2])) / (
+            t(fresnel.dielectric, WI[:, 2]) * t(fresnel.dielectric, WO[:, 2])
+        )
+        np.testing.assert_allclose(b["diffuse"], a["diffuse"] * r, rtol=1e-10)
+    else:  # the Lambertian body has no coat
+        np.testing.assert_array_equal(b["diffuse"], a["diffuse"])
+
+
+def test_schlick_gradients_grid_path_and_float32():
+    g = jax.grad(lambda p: twoscale.brdf(p, WI, WO, SCHLICK).sum())(PARAMS)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(g))
+    assert float(jnp.abs(g.eta).sum()) > 0.0
+    grid = np.asarray(twoscale.brdf_merl(PARAMS, SCHLICK))
+    wi, wo = twoscale.merl.grid_directions()
+    idx = (np.array([3, 40, 85]), np.array([10, 60, 80]), np.array([0, 50, 170]))
+    np.testing.assert_allclose(
+        grid[idx], np.asarray(twoscale.brdf(PARAMS, wi[idx], wo[idx], SCHLICK)), rtol=1e-9
+    )
+    p32 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), PARAMS)
+    out = twoscale.brdf(p32, WI.astype(jnp.float32), WO.astype(jnp.float32), SCHLICK)
+    assert out.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(out)))
+
+
+def test_choose_fresnel_and_resolve():
+    assert choose_fresnel(0.10, 0.10 * (1 - 2 * FRESNEL_TIE_RTOL))[0] == "schlick"
+    assert choose_fresnel(0.10, 0.10 * (1 - 0.5 * FRESNEL_TIE_RTOL))[0] == "exact"  # a tie
+    assert choose_fresnel(0.10, 0.12)[0] == "exact"
+    assert choose_fresnel(0.10, math.inf)[0] == "exact"
+    both = [ModelConfig(), EXACT]
+    assert resolve_fresnel(both, None, protocol=True) == (both, "auto")
+    assert resolve_fresnel(both, None, protocol=False) == (both, None)
+    fixed, mode = resolve_fresnel(both, "schlick", protocol=False)
+    assert mode is None and fixed == [ModelConfig(), SCHLICK]  # the conductor keeps its form
+    with pytest.raises(ValueError, match="fresnel must be"):
+        resolve_fresnel(both, "yes", protocol=False)
+    assert fresnel_choice_applies(EXACT) and not fresnel_choice_applies(SCHLICK)
+    assert not fresnel_choice_applies(ModelConfig())
+    assert not fresnel_choice_applies(dataclasses.replace(EXACT, q_mode="full"))
+
+
+def test_fit_chooses_schlick_for_a_schlick_plastic_and_records_it(tmp_path):
+    """``fresnel="auto"``: a plastic made with Schlick's form is fitted with it; the record keeps
+    the comparison and loads back."""
+    cfg = dataclasses.replace(SCHLICK, apparatus=True)
+    true = TwoScaleParams.plastic(
+        0.1, 1.2, (1.8, 1.7, 1.6), (0.1, 0.3, 0.5), sigma_s=0.01, b=1.0, c=2.0, e=0.8
+    )
+    data = synthetic(true, cfg, noise=0.01, seed=3)
+    stages = [Stage(4096, 1, 30), Stage(8192, 1, 10)]
+    res = fit(
+        data, config=dataclasses.replace(EXACT, apparatus=True), fresnel="auto", schedule=stages
+    )
+    sel = res.fresnel_selection["plastic"]
+    assert sel["chosen"] == "schlick", sel
+    assert sel["rms"]["schlick"] < (1 - FRESNEL_TIE_RTOL) * sel["rms"]["exact"]
+    assert res.model_config.fresnel == "schlick" and res.settings["fresnel"] == "auto"
+    loaded = twoscale.load_result(res.save(tmp_path / "params.json"))
+    assert loaded.fresnel_selection == res.fresnel_selection
+    assert loaded.model_config == res.model_config
