@@ -308,11 +308,15 @@ def fit_material(
     row.n_cells_80 = len(cells_80)
     results = {}
 
-    def run(key, config, material=None):
+    def run(key, config, material=None, fresnel=None):
         record = None if records is None else records / data.name / f"{key}.json"
         old = _load_record(record, settings, source) if resume and record is not None else None
         if old is not None and material not in (None, "auto", old[0].material):
             old = None  # EPD + diffuse of another type than the full model's
+        if old is not None and fresnel is None and key == "specular":
+            form = getattr(config, "fresnel", "exact")
+            if getattr(old[0].model_config, "fresnel", "exact") != form:
+                old = None  # EPD + diffuse with another Fresnel form than the full model's
         if old is not None:
             res, entry = old
             row.seconds[key] = _num(entry.get("seconds"))
@@ -325,6 +329,8 @@ def fit_material(
         else:
             t = time.perf_counter()
             kw = {} if material is None else {"material": material}
+            if fresnel is not None:
+                kw["fresnel"] = fresnel
             if cli and key == "full":
                 res = _fit_with_cli(path, records, data.name, row, settings, log)
             else:
@@ -355,10 +361,14 @@ def fit_material(
             _save_record(record, res, _record_entry(row, key, settings))
         return res
 
-    full = run("full", merl_protocol(apparatus=apparatus), "auto")
+    full = run("full", merl_protocol(apparatus=apparatus), "auto", fresnel="auto")
     row.material = full.material
-    # The special case under the same protocol, its lobe off, with the full fit's material type.
-    run("specular", merl_protocol(apparatus=apparatus, diffraction=False), full.material)
+    # The special case: the full fit's configuration (protocol, material type, Fresnel form) with
+    # the diffraction lobe off.
+    special = merl_protocol(apparatus=apparatus, diffraction=False)
+    if isinstance(full.model_config, type(special)):
+        special = dataclasses.replace(full.model_config, diffraction=False)
+    run("specular", special, full.material)
     for key in BASELINES:
         run(key, _baseline_config(key, apparatus))
     return row, results, data

@@ -240,21 +240,26 @@ def test_second_run_reuses_the_compilation_cache(files, tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("flags", "apparatus", "diffuse_fresnel"),
-    [([], True, False), (["--diffuse-fresnel"], True, True), (["--no-apparatus"], False, False)],
+    ("flags", "apparatus", "diffuse_fresnel", "fresnel"),
+    [
+        ([], True, False, "auto"),
+        (["--diffuse-fresnel"], True, True, "auto"),
+        (["--no-apparatus", "--fresnel", "exact"], False, False, "exact"),
+    ],
 )
 def test_cli_passes_the_merl_protocol(
-    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel
+    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel, fresnel
 ):
     """The two-scale fit gets :func:`twoscale.fit.merl_protocol` (apparatus factor, Lambertian
-    body) unless a flag says otherwise; the material type is left to the fit."""
+    body) unless a flag says otherwise; the material type and a dielectric coat's Fresnel form
+    are left to the fit unless ``--fresnel`` fixes it."""
     import twoscale.fit.driver as driver
     from twoscale.fit import merl_protocol
 
     seen = {}
 
     def spy(data, *, config, material, **kwargs):
-        seen.update(config=config, material=material)
+        seen.update(config=config, material=material, fresnel=kwargs.get("fresnel"))
         raise driver.FitError("stopped by the test")
 
     monkeypatch.setattr(driver, "fit", spy)
@@ -262,3 +267,4 @@ def test_cli_passes_the_merl_protocol(
     assert rc == EXIT_FIT
     assert seen["config"] == merl_protocol(apparatus=apparatus, diffuse_fresnel=diffuse_fresnel)
     assert seen["material"] == "auto"
+    assert seen["fresnel"] == fresnel

@@ -2,7 +2,8 @@
 
     python -m twoscale.fit material.binary [--out DIR] [--metric log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
-        [--full] [--no-apparatus] [--diffuse-fresnel] [--no-compile-cache]
+        [--full] [--no-apparatus] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
+        [--no-compile-cache]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
 MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)²]^e``, on the
@@ -10,7 +11,10 @@ specular lobe, with ``e`` fitted (MERL's measured values fall off at grazing ang
 the model is forced to fit that fall-off with its shape parameters). ``--no-apparatus`` fits the
 bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
 (``ρ_d/π``, :func:`twoscale.fit.merl_protocol` says why); ``--diffuse-fresnel`` uses the
-reference's varnish-transmitted body instead.
+reference's varnish-transmitted body instead. A dielectric coat's Fresnel reflectance takes the
+form that fits the data's diffraction-off special case better, the exact equations or Schlick's
+form (``--fresnel auto``; the exact form wins ties; ``params.json`` records the comparison under
+``"fresnel_selection"``); ``--fresnel exact`` or ``schlick`` fixes it.
 
 Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/twoscale/jax`` (default ``~/.cache/twoscale/jax``), so a second run, on any
@@ -90,6 +94,13 @@ def _parser() -> argparse.ArgumentParser:
         default=False,
         help="a plastic's body seen through the varnish's Fresnel transmission, as in the "
         "reference (default: off, a Lambertian body: MERL's plastics and fabrics fit better)",
+    )
+    ap.add_argument(
+        "--fresnel",
+        choices=("auto", "exact", "schlick"),
+        default="auto",
+        help="a dielectric coat's Fresnel form (default: auto, the better fit of the two; the "
+        "exact equations win ties)",
     )
     ap.add_argument(
         "--compile-cache",
@@ -279,6 +290,7 @@ def _run(args, log) -> int:
             schedule="preview" if args.preview else "full" if args.full else "default",
             solver=args.solver,
             seed=args.seed,
+            fresnel=None if args.baseline else args.fresnel,
             progress=log,
         )
     except FitError as err:

@@ -129,6 +129,12 @@ def apply_fixed(params, fixed: dict, adapter):
     return params, spec
 
 
+def _kind(cfg) -> str:
+    """The label prefix of a configuration's candidates: its material, and Schlick's form."""
+    material = getattr(cfg, "material", None) or adapter_for(cfg).material
+    return material + (" (Schlick)" if getattr(cfg, "fresnel", "exact") == "schlick" else "")
+
+
 def make_candidates(configs, start_lists, fixed: dict):
     """Groups (one per configuration) and their candidates from ``[(label, params)]`` lists."""
     groups: list[Group] = []
@@ -147,7 +153,7 @@ def make_candidates(configs, start_lists, fixed: dict):
                 raise ValueError("all starts must have the same parameter structure")
             cands.append(
                 Candidate(
-                    f"{adapter.material} {label}",
+                    f"{_kind(cfg)} {label}",
                     len(groups) - 1,
                     layout.ravel(free),
                     nested=label.startswith(NESTED_LABEL),

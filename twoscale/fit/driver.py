@@ -29,7 +29,14 @@ from twoscale.fit.evaluation import (
     rmse_within,
     standard_errors,
 )
-from twoscale.fit.material_type import body_levels, choose_type, resolve_configs
+from twoscale.fit.material_type import (
+    body_levels,
+    choose_fresnel,
+    choose_type,
+    fresnel_choice_applies,
+    resolve_configs,
+    resolve_fresnel,
+)
 from twoscale.fit.record import FitResult, package_versions
 from twoscale.fit.residuals import Problem, check_metric
 from twoscale.fit.schedule import Stage, resolve_schedule
@@ -153,6 +160,7 @@ class FitSettings:
     se_tol: float = _solver.SE_TOL
     nested: bool = True
     material: str | None = None
+    fresnel: str | None = None  # "auto": the fit chooses a dielectric coat's Fresnel form
 
     def __post_init__(self):
         check_metric(self.metric)
@@ -172,6 +180,7 @@ class FitSettings:
             "metric": self.metric,
             "max_theta_deg": self.max_theta_deg,
             "material": self.material,
+            "fresnel": self.fresnel,
             "fixed": {k: np.asarray(v).tolist() for k, v in self.fixed.items()},
             "starts": self.starts if isinstance(self.starts, str) else f"{len(self.starts)} given",
             "nested": self.nested,
@@ -190,25 +199,38 @@ class FitSettings:
 
 
 def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
-    """Phase 2: the groups and candidates of every configuration.
+    """Phase 2: the groups and candidates of every configuration; returns
+    ``(configs, groups, candidates, fresnel_selection)``.
 
     Default starts are placed from the data; with ``nested`` and the diffraction lobe on, the
     full model starts from a fit of its diffraction-off special case (same settings, the
-    subsample stages; :func:`~twoscale.fit.candidates.nested_starts`).
+    subsample stages; :func:`~twoscale.fit.candidates.nested_starts`). With
+    ``settings.fresnel == "auto"``, a dielectric type's special case is fitted with the exact
+    Fresnel equations and with Schlick's form, and the full model keeps the form
+    :func:`~twoscale.fit.material_type.choose_fresnel` picks (``fresnel_selection`` says which
+    and why; ``None`` when nothing was chosen).
     """
+    configs = list(configs)
     if not isinstance(settings.starts, str):
         start_lists = [[(f"start {i}", s) for i, s in enumerate(settings.starts)]]
-        return make_candidates(configs, start_lists, settings.fixed)
+        return configs, *make_candidates(configs, start_lists, settings.fixed), None
+    selection = None
     start_lists = [adapter_for(cfg).starts(prep.stats) for cfg in configs]
     if settings.nested and any(adapter_for(cfg).diffraction for cfg in configs):
         spec_cfgs = [dataclasses.replace(cfg, diffraction=False) for cfg in configs]
+        twins = {}  # index of a dielectric configuration -> index of its Schlick twin
+        if settings.fresnel == "auto":
+            for gi, cfg in enumerate(configs):
+                if cfg.diffraction and fresnel_choice_applies(cfg):
+                    twins[gi] = len(spec_cfgs)
+                    spec_cfgs.append(dataclasses.replace(spec_cfgs[gi], fresnel="schlick"))
         sub_fixed = {k: v for k, v in settings.fixed.items() if k not in ("sigma_s", "b", "c")}
         sub_groups, sub_cands = make_candidates(
             spec_cfgs, [adapter_for(c).starts(prep.stats) for c in spec_cfgs], sub_fixed
         )
         sub_stages = tuple(st for st in settings.stages if st.n_cells is not None)
         ts = time.perf_counter()
-        best_sub, _, _ = _run_schedule(
+        best_sub, sub_log, _ = _run_schedule(
             prep,
             sub_groups,
             sub_cands,
@@ -217,18 +239,44 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
             lambda msg: say(f"[diffraction off, for the nested starts] {msg}"),
             choose=False,
         )
-        for gi, cfg in enumerate(configs):
-            mine = [c for c in best_sub if c.group == gi]
-            if not mine or not cfg.diffraction:
+        best = {}  # group index -> its best special-case candidate (best_sub is sorted)
+        for c in best_sub:
+            best.setdefault(c.group, c)
+        source = list(range(len(configs)))  # the special-case group each full model starts from
+        for gi, ti in twins.items():
+            if gi not in best or ti not in best:
                 continue
-            g = sub_groups[gi]
-            p = Problem(g.adapter, g.layout, settings.metric).params(mine[0].y, g.frozen)
+            form, reason = choose_fresnel(best[gi].cost, best[ti].cost)
+            selection = selection or {}
+            selection[configs[gi].material] = {
+                "rms": {"exact": best[gi].cost, "schlick": best[ti].cost},
+                "chosen": form,
+                "reason": reason,
+                "n_cells": sub_log[-1]["n_cells_used"],
+            }
+            say(f"{configs[gi].material} coat's Fresnel form: {form} ({reason})")
+            if form == "schlick":
+                configs[gi] = dataclasses.replace(configs[gi], fresnel="schlick")
+                source[gi] = ti
+        for gi, cfg in enumerate(configs):
+            if not cfg.diffraction or source[gi] not in best:
+                continue
+            g = sub_groups[source[gi]]
+            p = Problem(g.adapter, g.layout, settings.metric).params(best[source[gi]].y, g.frozen)
             start_lists[gi] = nested_starts(p, cfg, settings.fixed)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
-    return make_candidates(configs, start_lists, settings.fixed)
+    if settings.fresnel == "auto" and selection is None:
+        if any(fresnel_choice_applies(c) and c.diffraction for c in configs):
+            selection = {
+                "chosen": "exact",
+                "reason": "not chosen: no diffraction-off fits to compare (nested=False)",
+            }
+    return configs, *make_candidates(configs, start_lists, settings.fixed), selection
 
 
-def _record(data, prep: _Prepared, groups, cands, stage_log, type_selection, settings, t0, say):
+def _record(
+    data, prep: _Prepared, groups, cands, stage_log, selections, settings, t0, say
+):  # selections: (type_selection, fresnel_selection)
     """Phase 5: the best candidate as a :class:`FitResult` (standard errors, warnings, RMSE of
     both metrics on every valid cell and on those within 80°, provenance)."""
     best = cands[0]
@@ -277,7 +325,8 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, type_selection, set
             "n_below_horizon": prep.selection.n_below_horizon,
         },
         stages=stage_log,
-        type_selection=type_selection,
+        type_selection=selections[0],
+        fresnel_selection=selections[1],
         rmse_80=rmse_within(pred, valid),
         warnings=warnings,
     )
@@ -299,6 +348,7 @@ def fit(
     atol: float = _solver.ATOL,
     se_tol: float = _solver.SE_TOL,
     nested: bool = True,
+    fresnel: str | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Fit a BRDF model to a measured MERL table.
@@ -333,6 +383,13 @@ def fit(
             (``A_spec(0) = 0.95``, the *nested* start, carried through every subsample stage)
             and once per point of a small (c, A_spec(0)) grid. The full model contains the
             special case as the limit σ_s → 0, so it cannot end worse than it.
+        fresnel: the Fresnel form of a dielectric coat (plastic, subsurface): ``"exact"``,
+            ``"schlick"`` (see ``ModelConfig.fresnel``) or ``"auto"``: the diffraction-off
+            special case of each dielectric type is fitted with both forms (with ``nested``) and
+            the full model keeps Schlick's only if it lowers that fit's RMS by more than
+            :data:`~twoscale.fit.material_type.FRESNEL_TIE_RTOL` (``FitResult.fresnel_selection``
+            records the comparison). ``None`` (default): ``"auto"`` under the MERL protocol
+            (``config=None``), else the configuration's own form.
         progress: called with one line of text per start and stage (e.g. ``print``).
 
     Returns:
@@ -363,6 +420,9 @@ def fit(
     )
     say = progress or (lambda _msg: None)
     configs = resolve_configs(config, material)
+    protocol = config is None or (isinstance(config, str) and config == "auto")
+    configs, fresnel_mode = resolve_fresnel(configs, fresnel, protocol)
+    settings = dataclasses.replace(settings, fresnel=fresnel_mode or fresnel)
     if not isinstance(settings.starts, str) and len(configs) > 1:
         raise ValueError("explicit starts need a single material type (pass material=...)")
     # Phase 1: the cells (host side) and their device buffer.
@@ -372,11 +432,12 @@ def fit(
         f"{settings.metric}; {len(settings.stages)} stages"
     )
     # Phase 2: the candidates.
-    groups, cands = _make_starts(prep, configs, settings, say)
+    configs, groups, cands, fresnel_selection = _make_starts(prep, configs, settings, say)
     say(f"{len(cands)} starts")
     # Phases 3 and 4: every stage, and the material type after the second-last one.
     cands, stage_log, type_selection = _run_schedule(
         prep, groups, cands, settings.stages, settings.solver_settings, say, choose=True
     )
     # Phase 5: the record.
-    return _record(data, prep, groups, cands, stage_log, type_selection, settings, t0, say)
+    selections = (type_selection, fresnel_selection)
+    return _record(data, prep, groups, cands, stage_log, selections, settings, t0, say)

@@ -66,6 +66,64 @@ def resolve_configs(config, material) -> list:
     return [dataclasses.replace(base, material=material)]
 
 
+#: Schlick's form of a dielectric coat's Fresnel reflectance must lower the diffraction-off fit's
+#: RMS by more than this fraction to be chosen over the exact equations (the physical form wins
+#: ties; :func:`choose_fresnel`).
+FRESNEL_TIE_RTOL = 0.02
+
+
+FRESNEL_MODES = ("auto", "exact", "schlick")
+
+
+def fresnel_choice_applies(config) -> bool:
+    """Can ``fresnel="auto"`` choose this configuration's Fresnel form? (A two-scale dielectric
+    with the exact form and without the full polarisation factor.)"""
+    return (
+        not isinstance(config, CookTorranceConfig)
+        and not config.is_conductor
+        and config.fresnel == "exact"
+        and config.q_mode != "full"
+    )
+
+
+def resolve_fresnel(configs: list, fresnel: str | None, protocol: bool) -> tuple[list, str | None]:
+    """Apply ``fit(fresnel=...)`` to the configurations; returns ``(configs, mode)`` with ``mode``
+    ``"auto"`` when the fit is to choose the form, else ``None``.
+
+    ``None`` (default): ``"auto"`` under the MERL protocol (``config=None``), else each
+    configuration's own form. ``"exact"`` / ``"schlick"``: that form for every dielectric type.
+    """
+    if fresnel is None:
+        fresnel = "auto" if protocol else None
+    if fresnel is None:
+        return configs, None
+    if fresnel not in FRESNEL_MODES:
+        raise ValueError(f"fresnel must be one of {FRESNEL_MODES} or None, got {fresnel!r}")
+    if any(isinstance(c, CookTorranceConfig) for c in configs):
+        if protocol:
+            return configs, None
+        raise ValueError("fresnel does not apply to the Cook-Torrance baseline")
+    if fresnel == "auto":
+        return configs, "auto"
+    return [c if c.is_conductor else dataclasses.replace(c, fresnel=fresnel) for c in configs], None
+
+
+def choose_fresnel(rms_exact: float, rms_schlick: float) -> tuple[str, str]:
+    """``("exact" | "schlick", reason)`` from the diffraction-off fits' RMS with each form (on
+    the same cells): Schlick's form only when it is lower by more than :data:`FRESNEL_TIE_RTOL`."""
+    if not math.isfinite(rms_schlick):
+        return "exact", "Schlick's form gave no finite fit"
+    if not math.isfinite(rms_exact) or rms_schlick < (1.0 - FRESNEL_TIE_RTOL) * rms_exact:
+        return "schlick", (
+            f"Schlick's form fits the diffraction-off model better "
+            f"(RMS {rms_schlick:.5g} vs {rms_exact:.5g} exact)"
+        )
+    return "exact", (
+        f"the exact form fits as well within {FRESNEL_TIE_RTOL:.0%} or better "
+        f"(RMS {rms_exact:.5g} vs {rms_schlick:.5g} Schlick)"
+    )
+
+
 #: Two material types whose best RMS differ by less than this fraction fit equally well; the
 #: physically consistent one is chosen (:func:`choose_type`).
 TYPE_TIE_RTOL = 0.02

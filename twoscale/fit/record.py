@@ -82,6 +82,11 @@ class FitResult:
             (``σ² (JᵀJ)⁺`` at the solution, mapped by the bijection's Jacobian).
         covariance: how the errors were obtained (rank, rank deficiency, σ², note).
         settings, versions, data: provenance.
+        type_selection: how the material type was chosen (``material="auto"``): each type's RMS,
+            the winner and why.
+        fresnel_selection: how a dielectric coat's Fresnel form was chosen (``fresnel="auto"``):
+            the diffraction-off fits' RMS with the exact and with Schlick's form, the winner and
+            why (None when not chosen).
         rmse_80: ``{"log", "linear", "n_cells"}``: the same RMSEs on the valid cells with
             ``θ_i, θ_o ≤ 80°`` (None when there is none).
         warnings: one line per problem of an otherwise usable fit (a parameter at a bound, a
@@ -109,6 +114,7 @@ class FitResult:
     data: dict
     stages: list = dataclasses.field(default_factory=list)
     type_selection: dict | None = None
+    fresnel_selection: dict | None = None
     params_dict: dict | None = None
     rmse_80: dict | None = None
     warnings: list = dataclasses.field(default_factory=list)
@@ -173,6 +179,7 @@ class FitResult:
                 "data": self.data,
                 "stages": self.stages,
                 "type_selection": self.type_selection,
+                "fresnel_selection": self.fresnel_selection,
                 "warnings": list(self.warnings),
             }
         )
@@ -255,6 +262,7 @@ def result_from_dict(d: dict) -> FitResult:
         data=d["data"],
         stages=d.get("stages", []),
         type_selection=d.get("type_selection"),
+        fresnel_selection=d.get("fresnel_selection"),
         params_dict=d["params"],
         rmse_80=m.get("within_80_deg"),
         warnings=list(d.get("warnings", [])),
