@@ -180,39 +180,6 @@ def test_factorised_normal_equations_match_jacfwd(conductor_data):
     np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-7, atol=1e-11 * np.abs(jtr).max())
 
 
-def test_stage_bins_give_the_same_pass(conductor_data):
-    """A small stage's compact bin list (terms on the bins its pairs use) changes nothing."""
-    from twoscale.fit.cells import stage_bins
-    from twoscale.fit.residuals import sum_squares
-
-    sel = select_cells(conductor_data)
-    shuffled = pair_cells(sel.fit)
-    shuffled = shuffled.take(np.random.default_rng(2).permutation(len(shuffled)))
-    pairs = shuffled.take(np.arange(3000))
-    data, n_active = pack(pairs, n_chunks=2, chunk=2048)
-    bins = stage_bins(pairs, 2048)  # the first chunk: ≈ 1 800 bins → a list of 2 048
-    assert bins is not None and bins["ih"].shape == (2048,)
-    assert stage_bins(pairs, 3000) is not None  # 3 000 pairs: ≈ 2 500 bins, still ≤ 4 096
-    assert stage_bins(shuffled, 20000) is None  # 20 000 random pairs: nearly every bin, no list
-    adapter = adapter_for(twoscale.ModelConfig())
-    free, frozen = eqx.partition(
-        CONDUCTOR.to_unconstrained(), jax.tree_util.tree_map(lambda _: True, CONDUCTOR)
-    )
-    layout = Layout.of(free)
-    y = layout.ravel(free)
-    problem = Problem(adapter, layout, "log")
-    one = jnp.int32(1)
-    full = normal_equations(problem, y, frozen, data, one)
-    compact = normal_equations(problem, y, frozen, {**data, "bins": bins}, one)
-    for a, b in zip(compact, full, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
-    np.testing.assert_allclose(
-        sum_squares(problem, y, frozen, {**data, "bins": bins}, one),
-        sum_squares(problem, y, frozen, data, one),
-        rtol=1e-12,
-    )
-
-
 def test_predict_cells_grid_path(conductor_data):
     sel = select_cells(conductor_data)
     cells = sel.valid.take(np.arange(0, len(sel.valid), 997))

@@ -224,29 +224,23 @@ class TwoScaleAdapter(AbstractAdapter):
 
         return brdf(params, wi, wo, self.config)
 
-    def bin_terms(self, params, bins=None):
+    def bin_terms(self, params):
         """Per-``(θ_h, θ_d)``-bin factors of the model on the MERL grid (lower bin edges, as the
-        fit's cells), flat ``(K, N)``: every bin (``K = 8100``, position ``90 ih + jd``) or,
-        with ``bins`` (``{"ih", "jd"}`` of shape ``(K,)``), those bins only
+        fit's cells), flat ``(8100, N)``, bin ``90 ih + jd`` at that position
         (:func:`twoscale.model.half_diff_terms`)."""
         from twoscale.model import half_diff_terms, merl_grid
 
-        grid = merl_grid("lower")
-        if bins is None:
-            terms = half_diff_terms(params, grid, self.config)
-            return {k: v.reshape(-1, v.shape[-1]) for k, v in terms.items()}
-        return half_diff_terms(params, grid, self.config, (bins["ih"], bins["jd"]))
+        terms = half_diff_terms(params, merl_grid("lower"), self.config)
+        return {k: v.reshape(-1, v.shape[-1]) for k, v in terms.items()}
 
-    def evaluate_cells(self, params, terms, cells, bins=None):
+    def evaluate_cells(self, params, terms, cells):
         """The model at MERL cells (``cells``: ``hd`` = 90 ih + jd, ``cos`` = (cos θ_i, cos θ_o),
-        ``phi``) from :meth:`bin_terms`: equal to :meth:`evaluate` at their directions.
-        With ``bins``, ``bins["remap"]`` maps ``hd`` to the position in the terms."""
+        ``phi``) from :meth:`bin_terms`: equal to :meth:`evaluate` at their directions."""
         from twoscale.model import brdf_from_terms
 
-        index = cells["hd"] if bins is None else bins["remap"][cells["hd"]]
         cos = cells["cos"]
         return brdf_from_terms(
-            params, terms, index, cos[..., 0], cos[..., 1], cells["phi"], self.config
+            params, terms, cells["hd"], cos[..., 0], cos[..., 1], cells["phi"], self.config
         )
 
     def evaluate_grid(self, params, convention: str = "lower"):

@@ -222,38 +222,5 @@ def pack_directions(wi, wo, n_chunks: int = DIRECTION_CHUNKS, chunk: int = CHUNK
     return out, max(1, -(-n // chunk))
 
 
-#: θ_d bins of the MERL grid (``hd = N_BINS_D · ih + jd``) and all (θ_h, θ_d) bins.
+#: θ_d bins of the MERL grid (``hd = N_BINS_D · ih + jd``).
 N_BINS_D = N_THETA_D
-
-
-N_BINS = N_THETA_H * N_THETA_D
-
-
-#: Bin lists of a stage are padded to a multiple of this (one compiled size per multiple).
-BIN_BLOCK = 1024
-
-
-def stage_bins(pairs: Pairs, n_pairs: int):
-    """The (θ_h, θ_d) bins of the first ``n_pairs`` pairs, when they are few enough to pay.
-
-    A factorised pass computes the per-bin terms (and their tangents) on every bin used. On a
-    small subsample (the first stage: ≈ 2 000 pairs touch ≈ 1 800 of the 8 100 bins) that is
-    cheaper on the bins listed here than on all. Returns ``{"ih", "jd": (K,), "remap": (8100,)}``
-    (``K`` padded to a multiple of :data:`BIN_BLOCK` with bin 0; ``remap`` maps ``hd`` to the
-    position in the list, 0 for unlisted bins), or None when the list would not be at least 2×
-    smaller than the grid.
-    """
-    hd = np.unique(pairs.ih[:n_pairs].astype(np.int64) * N_BINS_D + pairs.jd[:n_pairs])
-    k = -(-max(hd.size, 1) // BIN_BLOCK) * BIN_BLOCK
-    if 2 * k > N_BINS:
-        return None
-    listed = np.zeros(k, np.int64)
-    listed[: hd.size] = hd
-    remap = np.zeros(N_BINS, np.int32)
-    remap[hd] = np.arange(hd.size, dtype=np.int32)
-    ih, jd = np.divmod(listed, N_BINS_D)
-    return {
-        "ih": jnp.asarray(ih, jnp.int32),
-        "jd": jnp.asarray(jd, jnp.int32),
-        "remap": jnp.asarray(remap),
-    }

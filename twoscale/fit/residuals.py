@@ -64,13 +64,6 @@ def _chunk_at(data, i):
     return jax.tree_util.tree_map(lambda a: jax.lax.dynamic_index_in_dim(a, i, 0, False), data)
 
 
-def _split(data):
-    """``(chunks, bins)``: the chunked buffer and the stage's bin list (None: every bin)."""
-    if "bins" in data:
-        return {k: v for k, v in data.items() if k != "bins"}, data["bins"]
-    return data, None
-
-
 def _fold_chunks(step, init, data, n_active):
     """``acc = step(acc, chunk)`` over the first ``n_active`` chunks of ``data``.
 
@@ -188,13 +181,13 @@ class Problem(eqx.Module):
         """Does the adapter split its model into per-bin terms and a per-cell part?"""
         return self.adapter.factorised
 
-    def terms(self, y, frozen, bins=None):
+    def terms(self, y, frozen):
         """The adapter's per-bin terms at ``y`` (computed once per pass), or None."""
         if not self.factorised:
             return None
-        return self.adapter.bin_terms(self.params(y, frozen), bins)
+        return self.adapter.bin_terms(self.params(y, frozen))
 
-    def chunk_residual(self, y, frozen, chunk, terms=None, bins=None) -> jax.Array:
+    def chunk_residual(self, y, frozen, chunk, terms=None) -> jax.Array:
         """Residuals of one chunk of pairs, flattened ``(chunk × 2 × C,)``; absent members give 0.
 
         ``terms``: :meth:`terms` at ``y`` for a factorised adapter (the model is then evaluated
@@ -204,7 +197,7 @@ class Problem(eqx.Module):
         if terms is None:
             pred = self.adapter.evaluate(params, chunk["wi"], chunk["wo"])
         else:
-            pred = self.adapter.evaluate_cells(params, terms, chunk, bins)
+            pred = self.adapter.evaluate_cells(params, terms, chunk)
         return metric_residual(pred[:, None, :], chunk, self.metric).reshape(-1)
 
 
@@ -220,30 +213,28 @@ def metric_residual(pred, chunk, metric: str):
 
 def sum_squares(problem: Problem, y, frozen, data, n_active) -> jax.Array:
     """``rᵀr`` over the active chunks (primal only)."""
-
-    data, bins = _split(data)
-    terms = problem.terms(y, frozen, bins)
+    terms = problem.terms(y, frozen)
 
     def step(acc, chunk):
-        r = problem.chunk_residual(y, frozen, chunk, terms, bins)
+        r = problem.chunk_residual(y, frozen, chunk, terms)
         return acc + jnp.sum(r * r)
 
     return _fold_chunks(step, jnp.zeros((), y.dtype), data, n_active)
 
 
-def linearised_terms(problem: Problem, y, frozen, bins=None):
+def linearised_terms(problem: Problem, y, frozen):
     """:meth:`Problem.terms` at ``y`` and their tangents along every seed, or ``(None, None)``."""
     if not problem.factorised:
         return None, None
     seeds = jnp.asarray(problem.seeds()[0], dtype=y.dtype)
 
     def terms(yy):
-        return problem.terms(yy, frozen, bins)
+        return problem.terms(yy, frozen)
 
     return jax.vmap(lambda t: jax.jvp(terms, (y,), (t,)), out_axes=(None, 0))(seeds)
 
 
-def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None, bins=None):
+def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None):
     """Residuals ``(m,)`` and transposed Jacobian ``(n, m)`` of one chunk (compressed seeds).
 
     ``terms``, ``terms_dot``: :func:`linearised_terms` (factorised adapters), computed once per
@@ -261,7 +252,7 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
     else:
 
         def f2(yy, tt):
-            return problem.chunk_residual(yy, frozen, chunk, tt, bins)
+            return problem.chunk_residual(yy, frozen, chunk, tt)
 
         r, jac_s = jax.vmap(lambda t, td: jax.jvp(f2, (y, terms), (t, td)), out_axes=(None, 0))(
             seeds, terms_dot
@@ -274,11 +265,10 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
 def normal_equations(problem: Problem, y, frozen, data, n_active):
     """``(JᵀJ, Jᵀr, rᵀr)`` over the active chunks, without keeping the Jacobian."""
     n = y.shape[0]
-    data, bins = _split(data)
-    terms, terms_dot = linearised_terms(problem, y, frozen, bins)
+    terms, terms_dot = linearised_terms(problem, y, frozen)
 
     def step(acc, chunk):
-        r, jac_t = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot, bins)
+        r, jac_t = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
         jtj, jtr, rr = acc
         return jtj + jac_t @ jac_t.T, jtr + jac_t @ r, rr + r @ r
 
