@@ -131,8 +131,14 @@ def test_fit_chooses_schlick_for_a_schlick_plastic_and_records_it(tmp_path):
         data, config=dataclasses.replace(EXACT, apparatus=True), fresnel="auto", schedule=stages
     )
     sel = res.fresnel_selection["plastic"]
-    assert sel["chosen"] == "schlick", sel
+    # The special case favours Schlick's form, so the full model is fitted with both forms and
+    # keeps it by its own RMS.
+    assert sel["special_case"]["chosen"] == "schlick", sel
+    assert sel["chosen"] == "schlick" and sel["stage"] == 1, sel
     assert sel["rms"]["schlick"] < (1 - FRESNEL_TIE_RTOL) * sel["rms"]["exact"]
+    labels = [e["start"] for e in res.stages[0]["starts"]]
+    assert any(lab.startswith("plastic (Schlick)") for lab in labels)
+    assert any(lab.startswith("plastic nested") for lab in labels)
     assert res.model_config.fresnel == "schlick" and res.settings["fresnel"] == "auto"
     loaded = twoscale.load_result(res.save(tmp_path / "params.json"))
     assert loaded.fresnel_selection == res.fresnel_selection

@@ -12,9 +12,10 @@ the model is forced to fit that fall-off with its shape parameters). ``--no-appa
 bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
 (``ρ_d/π``, :func:`twoscale.fit.merl_protocol` says why); ``--diffuse-fresnel`` uses the
 reference's varnish-transmitted body instead. A dielectric coat's Fresnel reflectance takes the
-form that fits the data's diffraction-off special case better, the exact equations or Schlick's
-form (``--fresnel auto``; the exact form wins ties; ``params.json`` records the comparison under
-``"fresnel_selection"``); ``--fresnel exact`` or ``schlick`` fixes it.
+form that fits the data better, the exact equations or Schlick's form (``--fresnel auto``: first
+on the diffraction-off special case, then on the full model; the exact form wins ties;
+``params.json`` records the comparisons under ``"fresnel_selection"``); ``--fresnel exact`` or
+``schlick`` fixes it.
 
 Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/twoscale/jax`` (default ``~/.cache/twoscale/jax``), so a second run, on any

@@ -88,11 +88,43 @@ def _prepare(data, max_theta_deg, seed) -> _Prepared:
     return _Prepared(selection, stats, pairs, cells_upto, buffer, np.asarray(data.valid))
 
 
+def _choose_groups(kept, groups, n_cells: int, stage: int, say):
+    """Per material type, the group that goes on: its only one, or of its two Fresnel forms
+    (``fresnel="auto"``) the one :func:`~twoscale.fit.material_type.choose_fresnel` picks from
+    their best RMS on this stage. Returns ``({material: group index}, {material: choice})``."""
+    best = {}  # group index -> best cost
+    for c in kept:
+        best[c.group] = min(best.get(c.group, math.inf), c.cost)
+    forms: dict = {}
+    for gi in best:
+        form = getattr(groups[gi].adapter.config, "fresnel", "exact")
+        forms.setdefault(groups[gi].adapter.material, {})[form] = gi
+    chosen, choice = {}, {}
+    for mat, by_form in forms.items():
+        if len(by_form) == 1:
+            chosen[mat] = next(iter(by_form.values()))
+            continue
+        ex, sc = by_form["exact"], by_form["schlick"]
+        form, reason = choose_fresnel(best[ex], best[sc])
+        chosen[mat] = sc if form == "schlick" else ex
+        choice[mat] = {
+            "rms": {"exact": best[ex], "schlick": best[sc]},
+            "chosen": form,
+            "reason": reason,
+            "stage": stage,
+            "n_cells": n_cells,
+        }
+        say(f"{mat} coat's Fresnel form: {form} ({reason}; full model)")
+    return chosen, choice
+
+
 def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: bool):
     """Fit every candidate through the stages; returns ``(candidates best first, stage log,
-    type selection)``. The material type is chosen after the second-last stage (or the only one)."""
+    type selection, Fresnel choice)``. The Fresnel form of a type fitted with both, then the
+    material type, are chosen after the second-last stage (or the only one)."""
     stage_log = []
     type_selection = None
+    fresnel_choice = {}
     for si, stage in enumerate(stages):
         n_active, n_cells = prep.stage_cells(stage)
         entries = []
@@ -123,14 +155,17 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 e["duplicate_of"] = duplicates[e["start"]]
                 say(f"stage {si + 1}: [{e['start']}] reached [{e['duplicate_of']}]: dropped")
         if choose and len(groups) > 1 and (si == len(stages) - 2 or len(stages) == 1):
+            chosen, fresnel_choice = _choose_groups(kept, groups, n_cells, si + 1, say)
             best = {}
-            for c in kept:
-                g = groups[c.group]
-                mat = g.adapter.material
-                if mat not in best or c.cost < best[mat][0]:
-                    params = Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen)
-                    best[mat] = (c.cost, params)
-            winner, reason = choose_type(best, body_levels(best, groups, prep))
+            for mat, gi in chosen.items():
+                c = min((c for c in kept if c.group == gi), key=lambda c: c.cost)
+                g = groups[gi]
+                best[mat] = (
+                    c.cost,
+                    Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen),
+                )
+            by_material = {mat: groups[gi] for mat, gi in chosen.items()}
+            winner, reason = choose_type(best, body_levels(best, by_material, prep))
             rms = {k: v[0] for k, v in best.items()}
             type_selection = {"rms": rms, "chosen": winner, "reason": reason, "stage": si + 1}
             say(
@@ -138,9 +173,9 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 + ", ".join(f"{k} rms {v:.5g}" for k, v in rms.items())
                 + f" -> {winner} ({reason})"
             )
-            kept = [c for c in kept if groups[c.group].adapter.material == winner]
+            kept = [c for c in kept if c.group == chosen[winner]]
         cands = sorted(kept, key=lambda c: c.cost)
-    return cands, stage_log, type_selection
+    return cands, stage_log, type_selection, fresnel_choice
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,9 +241,12 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
     full model starts from a fit of its diffraction-off special case (same settings, the
     subsample stages; :func:`~twoscale.fit.candidates.nested_starts`). With
     ``settings.fresnel == "auto"``, a dielectric type's special case is fitted with the exact
-    Fresnel equations and with Schlick's form, and the full model keeps the form
-    :func:`~twoscale.fit.material_type.choose_fresnel` picks (``fresnel_selection`` says which
-    and why; ``None`` when nothing was chosen).
+    Fresnel equations and with Schlick's form; if Schlick's fits it better
+    (:func:`~twoscale.fit.material_type.choose_fresnel`), the full model is fitted with both
+    forms (a configuration with Schlick's form is appended, with its own nested starts) and
+    :func:`_run_schedule` keeps one by the full model's RMS; otherwise the exact form alone goes
+    on. ``fresnel_selection``: ``{material: {"special_case": ..., "chosen", "reason"}}`` (the
+    full model's comparison is added after the schedule), ``None`` when nothing was compared.
     """
     configs = list(configs)
     if not isinstance(settings.starts, str):
@@ -230,7 +268,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
         )
         sub_stages = tuple(st for st in settings.stages if st.n_cells is not None)
         ts = time.perf_counter()
-        best_sub, sub_log, _ = _run_schedule(
+        best_sub, sub_log, _, _ = _run_schedule(
             prep,
             sub_groups,
             sub_cands,
@@ -248,16 +286,22 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
                 continue
             form, reason = choose_fresnel(best[gi].cost, best[ti].cost)
             selection = selection or {}
-            selection[configs[gi].material] = {
+            special = {
                 "rms": {"exact": best[gi].cost, "schlick": best[ti].cost},
                 "chosen": form,
                 "reason": reason,
                 "n_cells": sub_log[-1]["n_cells_used"],
             }
-            say(f"{configs[gi].material} coat's Fresnel form: {form} ({reason})")
-            if form == "schlick":
-                configs[gi] = dataclasses.replace(configs[gi], fresnel="schlick")
-                source[gi] = ti
+            selection[configs[gi].material] = {
+                "special_case": special,
+                "chosen": "exact",
+                "reason": "Schlick's form did not fit the diffraction-off special case better",
+            }
+            say(f"{configs[gi].material} coat's Fresnel form, special case: {form} ({reason})")
+            if form == "schlick":  # both forms go on; the full model's RMS decides
+                configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
+                start_lists.append([])
+                source.append(ti)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
                 continue
@@ -266,19 +310,21 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
             start_lists[gi] = nested_starts(p, cfg, settings.fixed)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
     if settings.fresnel == "auto" and selection is None:
-        if any(fresnel_choice_applies(c) and c.diffraction for c in configs):
-            selection = {
+        selection = {
+            c.material: {
                 "chosen": "exact",
-                "reason": "not chosen: no diffraction-off fits to compare (nested=False)",
+                "reason": "not compared: no diffraction-off fits (nested=False or no start lists)",
             }
+            for c in configs
+            if fresnel_choice_applies(c) and c.diffraction
+        } or None
     return configs, *make_candidates(configs, start_lists, settings.fixed), selection
 
 
-def _record(
-    data, prep: _Prepared, groups, cands, stage_log, selections, settings, t0, say
-):  # selections: (type_selection, fresnel_selection)
+def _record(data, prep: _Prepared, groups, cands, stage_log, selections, settings, t0, say):
     """Phase 5: the best candidate as a :class:`FitResult` (standard errors, warnings, RMSE of
-    both metrics on every valid cell and on those within 80°, provenance)."""
+    both metrics on every valid cell and on those within 80°, provenance); ``selections`` is
+    ``(type_selection, fresnel_selection)``."""
     best = cands[0]
     g = groups[best.group]
     problem = Problem(g.adapter, g.layout, settings.metric)
@@ -384,11 +430,13 @@ def fit(
             and once per point of a small (c, A_spec(0)) grid. The full model contains the
             special case as the limit σ_s → 0, so it cannot end worse than it.
         fresnel: the Fresnel form of a dielectric coat (plastic, subsurface): ``"exact"``,
-            ``"schlick"`` (see ``ModelConfig.fresnel``) or ``"auto"``: the diffraction-off
-            special case of each dielectric type is fitted with both forms (with ``nested``) and
-            the full model keeps Schlick's only if it lowers that fit's RMS by more than
-            :data:`~twoscale.fit.material_type.FRESNEL_TIE_RTOL` (``FitResult.fresnel_selection``
-            records the comparison). ``None`` (default): ``"auto"`` under the MERL protocol
+            ``"schlick"`` (see ``ModelConfig.fresnel``) or ``"auto"`` (with ``nested``): each
+            dielectric type's diffraction-off special case is fitted with both forms; where
+            Schlick's lowers that RMS by more than
+            :data:`~twoscale.fit.material_type.FRESNEL_TIE_RTOL`, the full model is fitted with
+            both and keeps Schlick's only if it lowers the full model's RMS by as much, at the
+            stage where the material type is chosen (``FitResult.fresnel_selection`` records
+            both comparisons). ``None`` (default): ``"auto"`` under the MERL protocol
             (``config=None``), else the configuration's own form.
         progress: called with one line of text per start and stage (e.g. ``print``).
 
@@ -435,9 +483,12 @@ def fit(
     configs, groups, cands, fresnel_selection = _make_starts(prep, configs, settings, say)
     say(f"{len(cands)} starts")
     # Phases 3 and 4: every stage, and the material type after the second-last one.
-    cands, stage_log, type_selection = _run_schedule(
+    cands, stage_log, type_selection, fresnel_choice = _run_schedule(
         prep, groups, cands, settings.stages, settings.solver_settings, say, choose=True
     )
+    for mat, entry in (fresnel_selection or {}).items():
+        if mat in fresnel_choice:
+            entry.update(fresnel_choice[mat])
     # Phase 5: the record.
     selections = (type_selection, fresnel_selection)
     return _record(data, prep, groups, cands, stage_log, selections, settings, t0, say)

@@ -206,13 +206,12 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     return winner, f"RMS within {TYPE_TIE_RTOL:.0%}; lower RMS"
 
 
-def body_levels(best: dict, groups, prep) -> dict:
+def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model
-    on the MERL grid), and the data's bihemispherical albedo."""
+    on the MERL grid; ``groups``: ``{type: its group}``), and the data's bihemispherical albedo."""
     out = {"measured": prep.stats.floor, "albedo": prep.stats.albedo}
     for mat, (_rms, params) in best.items():
-        g = next(g for g in groups if g.adapter.material == mat)
-        grid = np.asarray(g.adapter.evaluate_grid(params, "lower"))
+        grid = np.asarray(groups[mat].adapter.evaluate_grid(params, "lower"))
         out[mat] = floor_level(grid, prep.valid_grid)
     return out
