@@ -333,6 +333,14 @@ def test_choose_type_tie_goes_to_the_physical_type():
     assert tie[0] == "conductor" and "no diffuse" in tie[1]
     # Both plausible: the lower RMS.
     assert choose_type({"conductor": (0.101, metal), "plastic": (0.100, plastic)})[0] == "plastic"
+    # Both disguised (a low-k conductor and a bodiless plastic, as alum-bronze and
+    # black-oxidized-steel fitted with Schlick's form): the bare interface is a metal's.
+    tie = choose_type({"conductor": (0.101, fake_metal), "plastic": (0.100, fake_plastic)})
+    assert tie[0] == "conductor" and "no diffuse" in tie[1]
+    # A body in one channel is a body (a red wood whose luminance ρ_d is below 0.01).
+    red_body = TwoScaleParams.plastic(0.1, 1.0, (1.5, 1.5, 1.5), (0.04, 1e-5, 1e-5))
+    tie = choose_type({"conductor": (0.100, fake_metal), "plastic": (0.101, red_body)})
+    assert tie[0] == "plastic" and "k <" in tie[1]
 
 
 def test_choose_type_a_conductor_without_the_measured_body_loses():

@@ -133,7 +133,7 @@ TYPE_TIE_RTOL = 0.02
 DIELECTRIC_K = 0.5
 
 
-#: A plastic fit whose diffuse albedo (luminance) is below this has no diffuse layer: a metal.
+#: A plastic fit whose diffuse albedo is below this in every channel has no diffuse layer: a metal.
 METAL_RHO_D = 0.01
 
 
@@ -163,9 +163,9 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     :data:`MISSING_BODY` of it, and the plastic fit's closer) loses to the plastic whatever its
     RMS: it would render black with a highlight.
     Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
-    conductor fit with ``k < DIELECTRIC_K`` in every channel is a dielectric in disguise (plastic
-    wins), and a plastic fit without a diffuse layer (luminance ``ρ_d < METAL_RHO_D``) is a metal
-    in disguise (conductor wins).
+    plastic fit without a diffuse layer (``ρ_d < METAL_RHO_D`` in every channel) is a metal in
+    disguise (conductor wins), and otherwise a conductor fit with ``k < DIELECTRIC_K`` in every
+    channel is a dielectric in disguise (plastic wins).
     """
     order = sorted(best, key=lambda t: best[t][0])
     winner = order[0]
@@ -193,15 +193,18 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     if abs(rms_c - rms_p) > TYPE_TIE_RTOL * min(rms_c, rms_p):
         return winner, "lower RMS"
     k = np.asarray(p_c.k)
-    rho_d = float(np.asarray(p_p.rho_d) @ np.array([0.2126, 0.7152, 0.0722]))
+    rho_d = float(np.max(np.asarray(p_p.rho_d)))
+    # A plastic fit without a body in any channel has nothing a conductor lacks: the bare
+    # interface of a metal (checked first: such a conductor fit may also have a low k).
+    if rho_d < METAL_RHO_D:
+        return "conductor", (
+            f"RMS within {TYPE_TIE_RTOL:.0%}; the plastic fit has no diffuse layer "
+            f"(ρ_d ≤ {rho_d:.3g} in every channel)"
+        )
     if np.all(k < DIELECTRIC_K):
         return (
             "plastic",
             f"RMS within {TYPE_TIE_RTOL:.0%}; the conductor fit has k < {DIELECTRIC_K}",
-        )
-    if rho_d < METAL_RHO_D:
-        return "conductor", (
-            f"RMS within {TYPE_TIE_RTOL:.0%}; the plastic fit has no diffuse layer (ρ_d = {rho_d:.3g})"
         )
     return winner, f"RMS within {TYPE_TIE_RTOL:.0%}; lower RMS"
 
