@@ -2,7 +2,7 @@
 
 A separate process because Dr.Jit's LLVM backend can abort the interpreter (e.g. an LLVM too old
 for the intrinsics it emits: "LLVM ERROR: Cannot select ... fmaximum" with LLVM 15); the
-benchmark then skips the Mitsuba row with that message.
+benchmark then skips the Mitsuba rows with that message.
 
     python -m benchmarks.mitsuba_worker STRIDE REPEATS
 """
@@ -23,7 +23,7 @@ def main(argv=None) -> int:
     if t is None:
         print(json.dumps({"error": note}))
         return 0
-    print(json.dumps({"median": t["median"], "compile": t["compile"], "note": note}))
+    print(json.dumps({"timings": t, "note": note}))
     return 0
 
 

@@ -42,3 +42,16 @@ def test_benchmark_scripts_run_on_tiny_sizes(tmp_path):
     assert body == (0.2, 0.1)
     rows = [[0, 1.0, 0, 0, 0.1], [0, 2.0, 0, 0, 0.05], [0, 3.0, 0, 0, 0.2]]
     assert run._pareto(rows, 1, 4) == [True, True, False]
+
+
+def test_ggx_reference_peak_value():
+    """The speed table's peer: at normal incidence and mirror reflection, D = 1/(πα²), G = 1 and
+    F = F0, so the value is F0/(4πα²) + ρ_d/π; below the horizon it is 0."""
+    from benchmarks import reference
+
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, -0.8]])
+    args = reference.ggx_inputs(n, np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), np.float64)
+    out = np.asarray(reference.ggx_lambert(*args))
+    a, f0, rho = reference.ALPHA, np.array(reference.F0), np.array(reference.RHO_D)
+    np.testing.assert_allclose(out[0], f0 / (4 * np.pi * a * a) + rho / np.pi, rtol=1e-12)
+    np.testing.assert_array_equal(out[1], 0.0)
