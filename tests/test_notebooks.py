@@ -6,12 +6,14 @@ tests (a kernel spec written for ``sys.executable`` into a temporary ``JUPYTER_P
 directory; two notebooks run at once (one kernel each). A run passes when every cell executes without an error, no Python warning is printed,
 at least one ``image/png`` output is produced, and the kernel reports ``sys.executable`` to be
 this interpreter. The tests skip, naming the reason, when nbclient or ipykernel is missing
-(``pip install -e .[test]`` installs both).
+(``pip install -e .[test]`` installs both); ``rendering.ipynb`` is skipped (not executed) when
+Mitsuba 3 or its LLVM backend cannot be loaded.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import os
 import re
@@ -23,7 +25,9 @@ import pytest
 
 NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
-EXPECTED = ("quickstart", "fitting", "speed_accuracy", "stability")
+EXPECTED = ("quickstart", "fitting", "speed_accuracy", "stability", "rendering")
+#: Notebooks that render with Mitsuba 3 (executed only where it and libLLVM load).
+NEEDS_MITSUBA = ("rendering",)
 #: Seconds allowed per cell: each notebook takes well under a minute in all on 2 cores; the margin
 #: absorbs a loaded CI machine (the longest cell, the fit, is ≈ 20 s on an idle one).
 CELL_TIMEOUT = 300
@@ -34,6 +38,24 @@ WARNING_LINE = re.compile(r":\d+: \w*Warning: ")
 PARALLEL = 2
 #: The cell appended to each executed copy: the kernel's interpreter.
 EXECUTABLE_PROBE = "import sys\nprint('sys.executable =', sys.executable)"
+
+
+@functools.cache
+def _no_mitsuba() -> str | None:
+    """Why Mitsuba 3 cannot render here (None when it can)."""
+    from twoscale.render import RenderUnavailable, check_available
+
+    try:
+        check_available()
+    except RenderUnavailable as err:
+        return str(err)
+    return None
+
+
+def _skip_reason(path: Path) -> str | None:
+    if path.stem in NEEDS_MITSUBA and _no_mitsuba():
+        return f"{path.name} needs Mitsuba 3 and libLLVM: {_no_mitsuba()}"
+    return None
 
 
 def _ids(paths):
@@ -131,9 +153,11 @@ def executed(kernel_name, tmp_path_factory):
             async with gate:
                 return await _execute(path, kernel_name, tmp_path_factory.mktemp(path.stem))
 
-        return await asyncio.gather(*(one(p) for p in NOTEBOOKS), return_exceptions=True)
+        runnable = [p for p in NOTEBOOKS if not _skip_reason(p)]
+        return runnable, await asyncio.gather(*(one(p) for p in runnable), return_exceptions=True)
 
-    return dict(zip(_ids(NOTEBOOKS), asyncio.run(run_all()), strict=True))
+    runnable, results = asyncio.run(run_all())
+    return dict(zip(_ids(runnable), results, strict=True))
 
 
 def _outputs(nb):
@@ -143,8 +167,10 @@ def _outputs(nb):
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
-def test_notebook_runs(path, executed, record_property):
-    result = executed[path.stem]
+def test_notebook_runs(path, request, record_property):
+    if reason := _skip_reason(path):
+        pytest.skip(reason)
+    result = request.getfixturevalue("executed")[path.stem]
     if isinstance(result, BaseException):
         raise result
     nb, seconds = result

@@ -28,7 +28,8 @@ arrays, so :func:`register` switches Dr.Jit's symbolic loops and calls off (the 
 so). Gradients do not flow through the plugin (the NumPy copy detaches them).
 
 **Fitted records.** ``filename`` is a ``params.json`` of :mod:`twoscale.fit`, read with
-:func:`twoscale.fit.record.load_result`. MERL's apparatus factor (``apparatus=True`` in the
+:func:`twoscale.fit.record.load_result`; its ``"albedo_table"``, when there, serves
+``eval_diffuse_reflectance``. MERL's apparatus factor (``apparatus=True`` in the
 records of the MERL protocol) models the gonioreflectometer, not the material: the plugin switches
 it off (``apparatus=False``; the parameter ``e`` is then unused) unless the scene dict says
 ``"apparatus": True``.
@@ -174,7 +175,8 @@ class _Material:
 
     @functools.cached_property
     def albedo(self) -> np.ndarray:
-        """``(64, 3)``: the directional albedo at ``cos θ_i = (i+1)/64`` (built on first use)."""
+        """``(m, 3)``: the directional albedo at ``cos θ_i = (i+1)/m``: a record's own
+        ``"albedo_table"`` (``m = 256``) when loaded from one, else built on first use (``m = 64``)."""
         return np.asarray(sampling.albedo_table(self.params, 64, self.config), np.float32)
 
     def eval_pdf(self, wi: np.ndarray, wo: np.ndarray, what: str = "both"):
@@ -211,7 +213,17 @@ def _material_from_file(filename: str, apparatus: bool = False) -> _Material:
     config = result.model_config
     if not isinstance(config, ModelConfig):
         raise ValueError(f"{filename}: a {result.model!r} fit, not a two-scale one")
-    return _Material.build(result.params, dataclasses.replace(config, apparatus=apparatus))
+    material = _Material.build(result.params, dataclasses.replace(config, apparatus=apparatus))
+    table = result.albedo_values()  # the record's own table (256 rows, float64), if any
+    if (
+        table is not None
+        and not apparatus
+        and not result.albedo_table.get("apparatus", True)
+        and table.shape[1:] == (3,)
+        and np.all(np.isfinite(table))
+    ):
+        material.__dict__["albedo"] = table.astype(np.float32)  # the cached_property's value
+    return material
 
 
 # ------------------------------------------------------------------------------ Mitsuba class
@@ -338,7 +350,7 @@ def _bsdf_class(variant: str):
             return bs, mi.Color3f(np.ascontiguousarray(w.T))
 
         def eval_diffuse_reflectance(self, si, active=True):
-            """The directional albedo at ``si.wi`` (all lobes; from a 64-entry table)."""
+            """The directional albedo at ``si.wi`` (all lobes; interpolated in the albedo table)."""
             self._check_scope()
             n = self._width(si.wi, mi.Bool(active))
             if n == 0:
