@@ -215,7 +215,12 @@ def _dense_albedo(params, cos_i, cfg, n=800):
 
 @pytest.mark.parametrize(
     "material,beta,cos_i",
-    [("conductor", 0.3, 0.8), ("conductor", 0.05, 0.5), ("plastic", 0.2, 0.3)],
+    [
+        ("conductor", 0.05, 0.5),
+        # The same quadrature code on a rougher conductor and a plastic: the slow set.
+        pytest.param("conductor", 0.3, 0.8, marks=pytest.mark.slow),
+        pytest.param("plastic", 0.2, 0.3, marks=pytest.mark.slow),
+    ],
 )
 def test_albedo_quadrature(material, beta, cos_i):
     """The half-vector quadrature agrees with a dense brute-force sum (documented accuracy)."""
@@ -374,7 +379,12 @@ def test_extremes_values_and_gradients_finite_other_dtypes(name, dtype):
 GRAD_CONFIGS = [
     ModelConfig(q_mode="full"),
     ModelConfig(material="plastic", apparatus=True),
-    ModelConfig(material="subsurface", shadowing="uncorrelated"),
+    # The subsurface body's code (plastic's coat + a diffuse term) is checked for finite gradients
+    # at the extremes by default (test_extremes_values_and_gradients_finite[subsurface-full]);
+    # against finite differences in the slow set (≈ 45 s of compilation on 2 cores).
+    pytest.param(
+        ModelConfig(material="subsurface", shadowing="uncorrelated"), marks=pytest.mark.slow
+    ),
 ]
 
 
@@ -390,7 +400,9 @@ def _check_grads(cfg):
     check_grads(f, leaves, order=1, modes=("fwd", "rev"), eps=1e-6, rtol=1e-5, atol=1e-8)
 
 
-@pytest.mark.parametrize("cfg", GRAD_CONFIGS, ids=_cfg_id)
+@pytest.mark.parametrize(
+    "cfg", GRAD_CONFIGS, ids=[_cfg_id(getattr(c, "values", [c])[0]) for c in GRAD_CONFIGS]
+)
 def test_check_grads_every_parameter(cfg):
     _check_grads(cfg)
 
@@ -411,13 +423,15 @@ def test_jit_equals_eager_and_vmap_equals_loop():
         _params("plastic", beta=b_, sigma_s=s_)
         for b_, s_ in ((0.05, 0.01), (0.3, 0.05), (0.8, 0.0))
     ]
+    # Eager (op by op) on one set: it is the slow part (≈ 10 s per set on 2 cores).
     with jax.disable_jit():
-        eager = [np.asarray(brdf(p, wi, wo, cfg)) for p in sets]
-    for p, e in zip(sets, eager, strict=True):
-        np.testing.assert_allclose(np.asarray(brdf(p, wi, wo, cfg)), e, rtol=1e-12)
+        eager = np.asarray(brdf(sets[0], wi, wo, cfg))
+    f = jax.jit(lambda p: brdf(p, wi, wo, cfg))
+    loop = [np.asarray(f(p)) for p in sets]
+    np.testing.assert_allclose(loop[0], eager, rtol=1e-12)
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
     vm = np.asarray(jax.vmap(lambda p: brdf(p, wi, wo, cfg))(batch))
-    np.testing.assert_allclose(vm, np.stack(eager), rtol=1e-12)
+    np.testing.assert_allclose(vm, np.stack(loop), rtol=1e-12)
 
 
 def test_float32_in_float32_out_and_broadcasting():

@@ -28,6 +28,12 @@ NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 EXPECTED = ("quickstart", "fitting", "speed_accuracy", "stability", "rendering")
 #: Notebooks that render with Mitsuba 3 (executed only where it and libLLVM load).
 NEEDS_MITSUBA = ("rendering",)
+#: Executed in the slow set only (``-m slow``; CI runs it). The fast set executes the quickstart and
+#: the stability notebook; the library code the others call is tested directly: fitting
+#: (tests/test_fit.py, tests/test_recovery.py, tests/test_cli.py), speed and accuracy
+#: (tests/test_table_service.py, tests/test_convolution.py, tests/test_benchmarks.py) and rendering
+#: (tests/test_mitsuba.py, tests/test_render_cli.py). Each took 33-42 s on 2 cores.
+SLOW_NOTEBOOKS = ("fitting", "speed_accuracy", "rendering")
 #: Seconds allowed per cell: each notebook takes well under a minute in all on 2 cores; the margin
 #: absorbs a loaded CI machine (the longest cell, the fit, is ≈ 20 s on an idle one).
 CELL_TIMEOUT = 300
@@ -60,6 +66,14 @@ def _skip_reason(path: Path) -> str | None:
 
 def _ids(paths):
     return [p.stem for p in paths]
+
+
+def _run_params(paths):
+    """``test_notebook_runs``'s parameters: the notebooks of :data:`SLOW_NOTEBOOKS` marked slow."""
+    return [
+        pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if p.stem in SLOW_NOTEBOOKS else [])
+        for p in paths
+    ]
 
 
 def _load_json(path: Path) -> dict:
@@ -137,9 +151,10 @@ async def _execute(path: Path, kernel: str, cwd: Path):
 
 
 @pytest.fixture(scope="module")
-def executed(kernel_name, tmp_path_factory):
-    """Every notebook executed, ``PARALLEL`` kernels at a time: ``{stem: (nb, seconds)}``, or the
-    exception its execution raised (re-raised by its own test).
+def executed(kernel_name, tmp_path_factory, request):
+    """Every notebook whose ``test_notebook_runs`` is selected in this run (``-m``, ``-k``),
+    executed ``PARALLEL`` kernels at a time: ``{stem: (nb, seconds)}``, or the exception its
+    execution raised (re-raised by its own test).
 
     Each kernel compiles on one core most of the time, so two at once take about half the wall
     time of one after the other on two cores; every notebook still runs in its own fresh kernel
@@ -153,7 +168,12 @@ def executed(kernel_name, tmp_path_factory):
             async with gate:
                 return await _execute(path, kernel_name, tmp_path_factory.mktemp(path.stem))
 
-        runnable = [p for p in NOTEBOOKS if not _skip_reason(p)]
+        selected = {
+            item.callspec.params["path"]
+            for item in request.session.items
+            if item.originalname == "test_notebook_runs" and hasattr(item, "callspec")
+        }
+        runnable = [p for p in NOTEBOOKS if p in selected and not _skip_reason(p)]
         return runnable, await asyncio.gather(*(one(p) for p in runnable), return_exceptions=True)
 
     runnable, results = asyncio.run(run_all())
@@ -166,7 +186,7 @@ def _outputs(nb):
             yield from cell.outputs
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
+@pytest.mark.parametrize("path", _run_params(NOTEBOOKS))
 def test_notebook_runs(path, request, record_property):
     if reason := _skip_reason(path):
         pytest.skip(reason)

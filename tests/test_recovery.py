@@ -104,8 +104,8 @@ def _check_noisy(material: str, true: TwoScaleParams, schedule: str) -> None:
 # fits the plastic (its full-model fit is run nowhere else by default), the slow run the conductor
 # too, whose fits the default run covers in tests/test_fit.py (the full model:
 # test_nested_start_keeps_full_model_at_least_as_good; the apparatus factor's e:
-# test_merl_protocol_default_is_apparatus) and in notebooks/fitting.ipynb (a conductor under the
-# MERL protocol, run by tests/test_notebooks.py).
+# test_merl_protocol_default_is_apparatus; the type choice: test_type_choice_on_synthetic_materials)
+# and, in the slow set, by notebooks/fitting.ipynb.
 def test_recovery_noise_free():
     _check_noise_free("plastic", PLASTIC, "preview")
 
@@ -118,7 +118,7 @@ def test_recovery_noisy_within_standard_errors():
 def test_recovery_conductor_preview():
     """The conductor's noise-free and noisy recoveries (preview schedule); the same fitter code as
     the plastic's test_recovery_noise_free / test_recovery_noisy_within_standard_errors, and the
-    conductor's full-model fits run by default in test_fit.py and notebooks/fitting.ipynb."""
+    conductor's full-model fits run by default in test_fit.py."""
     _check_noise_free("conductor", CONDUCTOR, "preview")
     _check_noisy("conductor", CONDUCTOR, "preview")
 
