@@ -29,6 +29,7 @@ from twoscale._numerics import eps, float_dtype, safe_sqrt
 __all__ = [
     "Frame",
     "frame",
+    "frame_from_components",
     "tan_theta",
     "spherical",
     "half_diff_from_dirs",
@@ -94,9 +95,21 @@ def frame(wi, wo) -> Frame:
     """
     (wi, wo), dtype = _as_float(wi, wo)
     wi, wo = jnp.broadcast_arrays(wi, wo)
-    e2 = eps(dtype) ** 2
-    ix, iy, iz = wi[..., 0], wi[..., 1], wi[..., 2]
-    ox, oy, oz = wo[..., 0], wo[..., 1], wo[..., 2]
+    return frame_from_components(
+        (wi[..., 0], wi[..., 1], wi[..., 2]), (wo[..., 0], wo[..., 1], wo[..., 2])
+    )
+
+
+def frame_from_components(wi, wo) -> Frame:
+    """:func:`frame` of directions given as component arrays ``(x, y, z)`` each.
+
+    The components are floating arrays of one dtype and one (broadcast) shape; the model's
+    per-pair path passes them as contiguous rows (a ``(..., 3)`` array's components are
+    strided, which keeps XLA's CPU loops from vectorising).
+    """
+    ix, iy, iz = wi
+    ox, oy, oz = wo
+    e2 = eps(jnp.result_type(ix)) ** 2
 
     # Half vector from s = i + o without normalising first.
     sx, sy, sz = ix + ox, iy + oy, iz + oz

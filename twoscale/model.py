@@ -182,7 +182,8 @@ def _lambdas(cos_i, cos_o, beta, p, path: str):
 def _g_value(beta, p, cos_i, cos_o, phi, path, correlated):
     # Λ once per direction, shared by both lobes.
     lam_i, lam_o = _lambdas(cos_i, cos_o, beta, p, path)
-    return shadowing.joint_g_from_lambdas(lam_i, lam_o, phi, correlated=correlated)
+    # φ = |φ_i − φ_o| in [0, π] (geometry.frame, HalfDiffGrid): no wrap needed.
+    return shadowing.joint_g_from_lambdas(lam_i, lam_o, phi, correlated=correlated, wrapped=True)
 
 
 def _is_zero(t) -> bool:
@@ -237,20 +238,32 @@ def _renormalisation(sin_d, big_b, c, path: str):
     one lookup of the scaled ``ρ = R/((c−1)B²/2)`` gives both ``R`` and ``(c−1)B²/R = 2/ρ``.
     """
     if path == "exact":
-        sd = sin_d[..., None]
+        sd = sin_d[..., None] if jnp.ndim(big_b) else sin_d
         return psd.renormalisation(sd, big_b, c, path=path), psd.diffraction_ratio(
             sd, big_b, c, path=path
         )
-    slices = jax.vmap(lambda bb: psd.renormalisation_slice(bb, c))(big_b)
-    rho = jax.vmap(lambda sl: sl.scaled(sin_d), out_axes=-1)(slices)
+    if jnp.ndim(big_b) == 0:  # one channel (the per-pair path's vmap over channels)
+        rho = psd.renormalisation_slice(big_b, c).scaled(sin_d)
+    else:
+        rho = psd.scaled_channels(sin_d, big_b, c)
     return 0.5 * (c - 1.0) * big_b * big_b * rho, 2.0 / rho
 
 
-def _convolved_lobe(cos_h, beta, p, c, u, path: str):
-    """``(S*D)(θ_h)`` per sample and channel; tables: sliced once at the shared (β, p, c)."""
+def _lobe_slice(ch: _Channels, cfg: ModelConfig):
+    """The convolution table sliced at the shared (β, p, c) (tables path with diffraction), else None."""
+    if cfg.path != "tables" or not cfg.diffraction:
+        return None
+    beta, p, c = (ch.par[n] for n in ("beta", "p", "c"))
+    return convolution.lobe_spline(beta, p, c, ch.dtype)
+
+
+def _convolved_lobe(cos_h, beta, p, c, u, path: str, lobe_slice=None):
+    """``(S*D)(θ_h)`` per sample and channel; tables: sliced once at the shared (β, p, c)
+    (``lobe_slice``, when the caller has it already)."""
     if path == "exact":
         return convolution.lobe(cos_h, beta, p, c, u, path=path)
-    lobe_slice = convolution.lobe_spline(beta, p, c, jnp.result_type(cos_h, u))
+    if lobe_slice is None:
+        lobe_slice = convolution.lobe_spline(beta, p, c, jnp.result_type(cos_h, u))
     return convolution.lobe_from_components(lobe_slice, cos_h, u)
 
 
@@ -276,6 +289,14 @@ class _Channels(NamedTuple):
     wl: jax.Array  # (N,) wavelengths (µm)
     rho_d: jax.Array | None  # (N,), dielectrics only
     dtype: object
+    eta_bar: jax.Array | None = None  # η̄ of the diffuse layer, when given (one channel at a time)
+
+
+def _chan(ch: _Channels, x):
+    """``x`` (per sample) against the channels: ``x[..., None]``, or ``x`` itself when ``ch``
+    holds one channel as scalars (inside the per-pair path's vmap over channels, where a
+    trailing axis of size 1 would keep XLA's CPU loops from vectorising along the samples)."""
+    return x if jnp.ndim(ch.eta) == 0 else x[..., None]
 
 
 def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays) -> _Channels:
@@ -291,7 +312,16 @@ def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays) -> _Channels:
     return _Channels(par, eta, k, jnp.asarray(cfg.wavelengths, dtype), rho_d, dtype)
 
 
-def _half_diff_terms(ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig) -> dict:
+def _fresnel(ch: _Channels, cfg: ModelConfig, cos_d):
+    """The specular reflectance ``F(θ_d)`` per channel (conductor, or the coat's form)."""
+    if cfg.is_conductor:
+        return fresnel.conductor(cos_d, ch.eta, ch.k)
+    return _coat_fresnel(cfg, cos_d, ch.eta)
+
+
+def _half_diff_terms(
+    ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig, lobe_slice=None, fres=None
+) -> dict:
     """The factors of the lobes that depend on ``θ_h`` and ``θ_d`` only, each ``(..., N)``.
 
     ``"specular"``: ``A_s F(θ_d) D(θ_h)``; ``"diffraction"``: ``(1 − A_s) Q (S*D)(θ_h)
@@ -303,8 +333,8 @@ def _half_diff_terms(ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig) -> di
     out = {}
     if not (cfg.specular or cfg.diffraction):
         return out
-    cd = cos_d[..., None]  # channel axis last
-    f = fresnel.conductor(cd, ch.eta, ch.k) if cfg.is_conductor else _coat_fresnel(cfg, cd, ch.eta)
+    cd = _chan(ch, cos_d)  # channel axis last
+    f = _fresnel(ch, cfg, cd) if fres is None else fres
     if cfg.diffraction:
         beta, p, sigma_s, b, c = (ch.par[n] for n in ("beta", "p", "sigma_s", "b", "c"))
         big_b = b / ch.wl  # B = b/λ per channel
@@ -313,13 +343,13 @@ def _half_diff_terms(ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig) -> di
         a_s = jnp.exp(-x)
         one_minus_a = -jnp.expm1(-x)  # exactly 0 at σ_s = 0
         q = {"2F": 2.0 * f, "F": f}.get(cfg.q_mode, 1.0)
-        lobe = _convolved_lobe(cos_h[..., None], beta, p, c, big_b * cd, cfg.path)
+        lobe = _convolved_lobe(_chan(ch, cos_h), beta, p, c, big_b * cd, cfg.path, lobe_slice)
         out["diffraction"] = one_minus_a * q * lobe * ratio / (2.0 * math.pi)
     else:
         a_s = 1.0
     if cfg.specular:
         d = distribution.ndf(cos_h, ch.par["beta"], ch.par["p"])
-        out["specular"] = a_s * f * d[..., None]
+        out["specular"] = a_s * f * _chan(ch, d)
     return out
 
 
@@ -332,11 +362,11 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) ->
         static = (cfg.path, cfg.shadowing == "correlated")
         g = _shadowing_g(static, ch.par["beta"], ch.par["p"], cos_i, cos_o, phi)
     if cfg.diffraction:
-        diffraction = hd["diffraction"] * g[..., None]
+        diffraction = hd["diffraction"] * _chan(ch, g)
         if cfg.q_mode == "full":
             k = ch.k if ch.k is not None else 0.0
             diffraction = diffraction * polarisation_q(
-                cos_i[..., None], cos_o[..., None], phi[..., None], ch.eta, k
+                _chan(ch, cos_i), _chan(ch, cos_o), _chan(ch, phi), ch.eta, k
             )
         out["diffraction"] = diffraction
     if cfg.specular:
@@ -345,27 +375,85 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) ->
         if cfg.apparatus:
             e = ch.par["e"]
             spec = spec * apparatus_factor(cos_i, e) * apparatus_factor(cos_o, e)
-        out["specular"] = hd["specular"] * spec[..., None]
+        out["specular"] = hd["specular"] * _chan(ch, spec)
     if cfg.has_diffuse:
-        eta_bar = jnp.dot(jnp.asarray(_luminance_weights(cfg), ch.dtype), ch.eta)
+        eta_bar = _eta_bar(ch, cfg) if ch.eta_bar is None else ch.eta_bar
         out["diffuse"] = _diffuse(
-            cfg, cos_i[..., None], cos_o[..., None], ch.eta, ch.rho_d, eta_bar
+            cfg, _chan(ch, cos_i), _chan(ch, cos_o), ch.eta, ch.rho_d, eta_bar
         )
     return out
 
 
-def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig) -> dict:
-    """Every switched-on lobe per wavelength, each ``(..., N)`` (N = len(cfg.wavelengths))."""
-    ch = _channels(params, cfg, wi, wo)
-    fr = geometry.frame(jnp.asarray(wi, ch.dtype), jnp.asarray(wo, ch.dtype))
+def _eta_bar(ch: _Channels, cfg: ModelConfig):
+    return jnp.dot(jnp.asarray(_luminance_weights(cfg), ch.dtype), ch.eta)
+
+
+def _pair_lobes(ch: _Channels, wi, wo, cfg: ModelConfig, lobe_slice, total: bool) -> dict:
+    """Every switched-on lobe at direction pairs ``(..., 3)``, channel first: ``(N, ...)`` each
+    (or their sum, ``{"total": ...}``).
+
+    The channels are a ``vmap`` of one channel's lobes: the per-pair factors (geometry, ``D``,
+    ``G``) are computed once, the per-channel ones with the channel as the leading (major)
+    axis, so XLA's loops run along the pairs. With the channel last (minor, of size 3) the
+    same elementwise code ran several times slower on CPU.
+    """
+    fr = geometry.frame_from_components(_channels_first(wi), _channels_first(wo))
     # Below the horizon: evaluate at the normal (harmless, finite gradients), then mask to 0.
     above = (fr.cos_i > 0.0) & (fr.cos_o > 0.0)
 
     def guard(x, safe):
         return jnp.where(above, x, safe)
 
-    hd = _half_diff_terms(ch, guard(fr.cos_h, 1.0), guard(fr.cos_d, 1.0), guard(fr.sin_d, 0.0), cfg)
-    return _masked_cell_lobes(ch, hd, fr.cos_i, fr.cos_o, fr.phi, cfg)
+    cos_h, cos_d, sin_d = guard(fr.cos_h, 1.0), guard(fr.cos_d, 1.0), guard(fr.sin_d, 0.0)
+    eta_bar = _eta_bar(ch, cfg) if cfg.has_diffuse else None
+
+    # F(θ_d) of every channel, computed apart (a dot is not fused) so that its rounding does
+    # not depend on which lobes consume it (σ_s = 0 reduces bit-exactly to Cook-Torrance).
+    fres = None
+    if cfg.specular or cfg.diffraction:
+        f_all = _fresnel(ch, cfg, cos_d[..., None])  # (..., N)
+        eye = jnp.eye(f_all.shape[-1], dtype=f_all.dtype)
+        fres = jnp.einsum("...c,cd->d...", f_all, eye, precision=jax.lax.Precision.HIGHEST)
+
+    def one(eta, k, wl, rho_d, f):
+        c1 = ch._replace(eta=eta, k=k, wl=wl, rho_d=rho_d, eta_bar=eta_bar)  # scalars
+        hd = _half_diff_terms(c1, cos_h, cos_d, sin_d, cfg, lobe_slice, f)
+        out = _masked_cell_lobes(c1, hd, fr.cos_i, fr.cos_o, fr.phi, cfg)
+        return {"total": sum(out.values())} if total else out
+
+    return jax.vmap(one)(ch.eta, ch.k, ch.wl, ch.rho_d, fres)
+
+
+def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig, total: bool = False) -> dict:
+    """Every switched-on lobe per wavelength, each ``(..., N)`` (N = len(cfg.wavelengths)), or
+    with ``total`` their sum (``{"total": ...}``).
+
+    The convolution table is sliced once (:func:`_lobe_slice`); the per-pair work is
+    :func:`_pair_lobes`, channel first, moved to the channel-last output by
+    :func:`_channels_last`.
+    """
+    ch = _channels(params, cfg, wi, wo)
+    wi, wo = jnp.broadcast_arrays(jnp.asarray(wi, ch.dtype), jnp.asarray(wo, ch.dtype))
+    out = _pair_lobes(ch, wi, wo, cfg, _lobe_slice(ch, cfg), total)
+    return {k: _channels_last(v) for k, v in out.items()}
+
+
+def _channels_first(w):
+    """``(..., 3)`` → its components as contiguous ``(...)`` rows, by a product with the identity
+    (exact for finite values; see :func:`_channels_last` for why not a transpose)."""
+    eye = jnp.eye(w.shape[-1], dtype=w.dtype)
+    return tuple(jnp.einsum("...c,cd->d...", w, eye, precision=jax.lax.Precision.HIGHEST))
+
+
+def _channels_last(v):
+    """``(N, ...)`` → ``(..., N)`` as a product with the identity (exact for finite values).
+
+    A plain transpose is fused into the computation of ``v`` by XLA, whose CPU loop then runs
+    in the output's order (channel minor, of size 3), several times slower than along the
+    samples; a ``dot`` is not fused, so ``v`` is computed channel first and moved once.
+    """
+    eye = jnp.eye(v.shape[0], dtype=v.dtype)
+    return jnp.einsum("c...,cd->...d", v, eye, precision=jax.lax.Precision.HIGHEST)
 
 
 def _masked_cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) -> dict:
@@ -381,7 +469,7 @@ def _masked_cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelCon
         jnp.where(above, phi, 0.0),
         cfg,
     )
-    mask = above[..., None]
+    mask = _chan(ch, above)
     return {name: jnp.where(mask, v, 0.0).astype(ch.dtype) for name, v in out.items()}
 
 
@@ -416,8 +504,7 @@ def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig()):
         (``config`` static; nested in an outer ``jit``/``vmap``/``grad`` it is inlined),
         differentiable in every parameter, finite values and gradients over the valid domain.
     """
-    ch = _channel_lobes(params, wi, wo, config)
-    return _to_output(sum(ch.values()), config)
+    return _to_output(_channel_lobes(params, wi, wo, config, total=True)["total"], config)
 
 
 def _cells_total(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig):

@@ -84,7 +84,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from twoscale import tables
-from twoscale._numerics import float_dtype, gauss_legendre
+from twoscale._numerics import asinh_nonneg, float_dtype, gauss_legendre
 from twoscale.tables import Spline, _weights, load_table
 
 __all__ = [
@@ -93,6 +93,7 @@ __all__ = [
     "diffraction_ratio",
     "renormalisation_slice",
     "RenormalisationSlice",
+    "scaled_channels",
     "TABLE_NAME",
 ]
 
@@ -231,8 +232,10 @@ def _table_coords(B, c):
 
 
 def _s_coord(s, B_x):
-    """``x = asinh(B(1−s))/asinh(B)``: 0 at s = 1, 1 at s = 0, resolves the 1/B-wide s → 1 edge."""
-    return jnp.arcsinh(B_x * (1.0 - s)) / jnp.arcsinh(B_x)
+    """``x = asinh(B(1−s))/asinh(B)``: 0 at s = 1, 1 at s = 0, resolves the 1/B-wide s → 1 edge.
+
+    Both arguments are ≥ 0 (``s ≤ 1``, ``B_x > 0``): :func:`asinh_nonneg`, one ``log1p`` each."""
+    return asinh_nonneg(B_x * (1.0 - s)) / asinh_nonneg(B_x)
 
 
 def _lookup(spline: Spline, *coords):
@@ -327,6 +330,29 @@ def renormalisation_slice(B, c, *, dtype=None) -> RenormalisationSlice:
     lb, lc, B_x, qscale = _table_coords(B, c)
     spline = tables.spline(TABLE_NAME, dtype).slice(lb, lc)
     return RenormalisationSlice(spline, B, c, B_x, qscale, _scaled_normal(B, c))
+
+
+def scaled_channels(sin_theta, B, c):
+    """``ρ(s; B_j, c)`` of every channel at once: ``(..., C)`` for ``s`` ``(...)``, ``B`` ``(C,)``.
+
+    The table is sliced once per channel (:func:`renormalisation_slice`, vmapped over ``B``);
+    each sample then does one 1-D cubic lookup per channel, as flat scalar gathers from the
+    stacked slices (elementwise code that fuses; a vmap of the slices' lookups gathers per
+    channel with batch dimensions instead). The same terms in the same order as
+    :meth:`RenormalisationSlice.scaled`.
+    """
+    slices = jax.vmap(lambda bb: renormalisation_slice(bb, c))(B)
+    sp = slices.spline
+    coeffs = sp.coeffs  # (C, m)
+    n_ch, m = coeffs.shape
+    s = _clamp_s(jnp.asarray(sin_theta, coeffs.dtype))[..., None]
+    i, w = _weights(_s_coord(s, slices.B_x), sp.lo[0], sp.step[0], sp.n[0])
+    idx = i + jnp.arange(n_ch, dtype=jnp.int32) * m
+    flat = coeffs.reshape(-1)
+    q_tilde = jnp.zeros(idx.shape, coeffs.dtype)
+    for k in range(4):
+        q_tilde = q_tilde + w[..., k] * flat.at[idx + k].get(mode="promise_in_bounds")
+    return slices.scaled_normal * jnp.exp(q_tilde * slices.qscale)
 
 
 # --- public API -------------------------------------------------------------------------------

@@ -213,19 +213,34 @@ class Spline(eqx.Module):
         coords = jnp.broadcast_arrays(*[jnp.asarray(x, c.dtype) for x in coords])
         shape = coords[0].shape
         iw = [
-            _weights(x.reshape(-1), lo, st, n, self.order)
+            _weights(x, lo, st, n, self.order)
             for x, lo, st, n in zip(coords, self.lo, self.step, self.n, strict=True)
         ]
+        # Scalar gathers from the flattened coefficients (one flat index per sample, a constant
+        # offset per tap, each component from its own contiguous row): they fuse with the
+        # elementwise code around them, where gathering index tuples or component slices made
+        # XLA materialise every tap. Same terms, same order of summation as before.
+        grid = c.shape[: self.ndim]
         comp = c.shape[self.ndim :]
-        out = jnp.zeros((coords[0].size, *comp), c.dtype)
-        extra = (None,) * len(comp)
+        strides = [int(np.prod(grid[k + 1 :], dtype=np.int64)) for k in range(self.ndim)]
+        rows = c.reshape(int(np.prod(grid)), -1).T  # (components, grid cells)
+        base = functools.reduce(
+            lambda a, b: a + b, [i * s for (i, _), s in zip(iw, strides, strict=True)]
+        )
+        outs = [jnp.zeros(shape, c.dtype) for _ in range(rows.shape[0])]
         for ks in itertools.product(range(self.width), repeat=self.ndim):
-            idx = tuple(i + k for (i, _), k in zip(iw, ks, strict=True))
+            offset = sum(k * s for k, s in zip(ks, strides, strict=True))
+            idx = base + offset
             w = functools.reduce(
-                lambda a, b: a * b, [w[:, k] for (_, w), k in zip(iw, ks, strict=True)]
+                lambda a, b: a * b, [w[..., k] for (_, w), k in zip(iw, ks, strict=True)]
             )
-            out = out + w[(...,) + extra] * c[idx]
-        return out.reshape(shape + comp)
+            outs = [
+                o + w * row.at[idx].get(mode="promise_in_bounds")
+                for o, row in zip(outs, rows, strict=True)
+            ]
+        if not comp:
+            return outs[0]
+        return jnp.stack(outs, axis=-1).reshape(shape + comp)
 
 
 @dataclass(frozen=True, eq=False)
