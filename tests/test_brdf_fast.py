@@ -56,7 +56,12 @@ def _channel_last(params, wi, wo, cfg):
     return model._cells_total(ch, hd, fr.cos_i, fr.cos_o, fr.phi, cfg)
 
 
-@pytest.mark.parametrize("case", range(len(CASES)))
+@pytest.mark.parametrize(
+    "case",
+    # The plastic and the spectral conductor run the same per-pair code as the conductor (each
+    # compiles values and gradients of both compositions, ≈ 30 s on 2 cores): the slow set.
+    [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)],
+)
 def test_per_pair_path_equals_channel_last_composition(case):
     params, cfg = CASES[case]
     wi, wo = _dirs(300, case)

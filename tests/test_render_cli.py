@@ -217,7 +217,8 @@ def test_no_mitsuba_subprocess(tmp_path):
     line, and no fitting started (no progress line)."""
     fake = tmp_path / "fake"
     fake.mkdir()
-    (fake / "mitsuba.py").write_text("raise ImportError('simulated: no Mitsuba here')\n")
+    for name in ("mitsuba", "drjit"):  # whichever the check imports first
+        (fake / f"{name}.py").write_text("raise ImportError('simulated: no Mitsuba here')\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(fake), str(REPO)])}
     env.pop("TWOSCALE_DEBUG", None)
     proc = subprocess.run(
