@@ -1,4 +1,4 @@
-"""Shared test helpers: float64 finite differences and NaN checks."""
+"""Shared test helpers: float64 finite differences, NaN checks, stand-in fit records."""
 
 from __future__ import annotations
 
@@ -24,3 +24,33 @@ def assert_finite_tree(tree, what=""):
 def grads_all(f, *args):
     """Gradients of sum(f(*args)) w.r.t. every positional argument."""
     return jax.grad(lambda *a: jnp.sum(f(*a)), argnums=tuple(range(len(args))))(*args)
+
+
+def two_scale_record(params, config, **fields):
+    """A :class:`~twoscale.fit.record.FitResult` of a two-scale fit that was never run: ``params``
+    under ``config`` with zero errors (``fields`` override any other field)."""
+    from twoscale.fit.adapters import config_to_dict
+    from twoscale.fit.record import FitResult
+
+    record = dict(
+        params=params,
+        model="two-scale",
+        config={"model": "two-scale", **config_to_dict(config)},
+        metric="log",
+        rmse_linear=0.0,
+        rmse_log=0.0,
+        per_channel={},
+        rmse_fit=0.0,
+        n_valid=1,
+        n_fit=1,
+        converged=True,
+        status="stand-in fit",
+        steps=0,
+        wall_time=0.0,
+        std_errors={},
+        covariance={},
+        settings={},
+        versions={},
+        data={},
+    )
+    return FitResult(**(record | fields))

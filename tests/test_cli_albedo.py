@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import twoscale
+from tests.helpers import two_scale_record
 from twoscale import merl
 from twoscale.fit import load_result
 from twoscale.fit.__main__ import main
-from twoscale.fit.adapters import config_to_dict
 from twoscale.fit.record import ALBEDO_ROWS, FitResult, result_from_dict
 from twoscale.fit.synthetic import EXAMPLE
 
@@ -32,27 +32,7 @@ TOL = 1e-4
 
 
 def _record(params=PARAMS, config=CONFIG) -> FitResult:
-    return FitResult(
-        params=params,
-        model="two-scale",
-        config={"model": "two-scale", **config_to_dict(config)},
-        metric="log",
-        rmse_linear=0.0,
-        rmse_log=0.0,
-        per_channel={},
-        rmse_fit=0.0,
-        n_valid=1,
-        n_fit=1,
-        converged=True,
-        status="stand-in fit",
-        steps=0,
-        wall_time=0.0,
-        std_errors={},
-        covariance={},
-        settings={},
-        versions={},
-        data={},
-    )
+    return two_scale_record(params, config)
 
 
 @pytest.fixture(scope="module")

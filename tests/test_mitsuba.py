@@ -9,8 +9,7 @@ import pytest
 
 import twoscale
 import twoscale.mitsuba as tm
-from twoscale.fit.adapters import config_to_dict
-from twoscale.fit.record import FitResult
+from tests.helpers import two_scale_record
 
 tm._set_llvm_path()  # before Mitsuba is imported (Dr.Jit reads DRJIT_LIBLLVM_PATH)
 mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 not installed (pip install -e '.[mitsuba]')")
@@ -135,27 +134,7 @@ def test_params_json_scene_dict(variant, tmp_path):
     """``{"type": "twoscale", "filename": ...}`` reads a fit record, apparatus factor off."""
     params, cfg = CONDUCTOR
     cfg_fit = dataclasses.replace(cfg, apparatus=True)
-    res = FitResult(
-        params=params.replace(e=0.8),
-        model="two-scale",
-        config={"model": "two-scale", **config_to_dict(cfg_fit)},
-        metric="log",
-        rmse_linear=0.0,
-        rmse_log=0.0,
-        per_channel={},
-        rmse_fit=0.0,
-        n_valid=0,
-        n_fit=0,
-        converged=True,
-        status="test record",
-        steps=0,
-        wall_time=0.0,
-        std_errors={},
-        covariance={},
-        settings={},
-        versions={},
-        data={},
-    )
+    res = two_scale_record(params.replace(e=0.8), cfg_fit, n_valid=0, n_fit=0, status="test record")
     path = res.save(tmp_path / "params.json")
     from_file = mi.load_dict({"type": "twoscale", "filename": str(path)})
     direct = tm.bsdf(params, cfg)

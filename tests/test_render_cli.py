@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import twoscale
+from tests.helpers import two_scale_record
 from twoscale import merl
 from twoscale.fit.__main__ import EXIT_INPUT, main
-from twoscale.fit.adapters import config_to_dict
 from twoscale.fit.record import FitResult
 from twoscale.fit.synthetic import EXAMPLE
 
@@ -30,27 +30,7 @@ PARAMS = twoscale.TwoScaleParams.conductor(**EXAMPLE)
 
 
 def _record() -> FitResult:
-    return FitResult(
-        params=PARAMS,
-        model="two-scale",
-        config={"model": "two-scale", **config_to_dict(CONFIG)},
-        metric="log",
-        rmse_linear=0.0,
-        rmse_log=0.0,
-        per_channel={},
-        rmse_fit=0.0,
-        n_valid=1,
-        n_fit=1,
-        converged=True,
-        status="stand-in fit",
-        steps=0,
-        wall_time=0.0,
-        std_errors={},
-        covariance={},
-        settings={},
-        versions={},
-        data={},
-    )
+    return two_scale_record(PARAMS, CONFIG)
 
 
 @pytest.fixture(scope="module")
