@@ -118,10 +118,14 @@ def _choose_groups(kept, groups, n_cells: int, stage: int, say):
     return chosen, choice
 
 
-def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: bool):
+def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: bool, warm=None):
     """Fit every candidate through the stages; returns ``(candidates best first, stage log,
     type selection, Fresnel choice)``. The Fresnel form of a type fitted with both, then the
-    material type, are chosen after the second-last stage (or the only one)."""
+    material type, are chosen after the second-last stage (or the only one). ``warm``: a
+    :class:`~twoscale.fit.solver.Warmup` that compiles the groups' solves ahead of their use."""
+    if warm is not None:
+        for c in cands:  # in order of first use
+            warm.submit(groups[c.group], c.y)
     stage_log = []
     type_selection = None
     fresnel_choice = {}
@@ -132,6 +136,8 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
             g = groups[cand.group]
             m = n_cells * g.adapter.config.n_channels
             ts = time.perf_counter()
+            if warm is not None:
+                warm.wait(g)
             y, rr, jtj, steps, ok, msg = _solver.refine(
                 cand, g, stage, prep.buffer, n_active, m, opts
             )
@@ -165,6 +171,9 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                     Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen),
                 )
             by_material = {mat: groups[gi] for mat, gi in chosen.items()}
+            if warm is not None:
+                for g in by_material.values():
+                    warm.wait_key(("grid", g.adapter.config))
             winner, reason = choose_type(best, body_levels(best, by_material, prep))
             rms = {k: v[0] for k, v in best.items()}
             type_selection = {"rms": rms, "chosen": winner, "reason": reason, "stage": si + 1}
@@ -225,6 +234,7 @@ class FitSettings:
             "atol": self.atol,
             "se_tol": self.se_tol,
             "stall_rtol": _solver.STALL_RTOL,
+            "stall_resolution": _solver.STALL_RESOLUTION,
             "initial_damping": _solver.INITIAL_DAMPING,
             "seed": self.seed,
             "chunk": CHUNK,
@@ -233,13 +243,13 @@ class FitSettings:
         }
 
 
-def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
+def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None):
     """Phase 2: the groups and candidates of every configuration; returns
     ``(configs, groups, candidates, fresnel_selection)``.
 
     Default starts are placed from the data; with ``nested`` and the diffraction lobe on, the
     full model starts from a fit of its diffraction-off special case (same settings, the
-    subsample stages; :func:`~twoscale.fit.candidates.nested_starts`). With
+    screening stages: every stage but the last; :func:`~twoscale.fit.candidates.nested_starts`). With
     ``settings.fresnel == "auto"``, a dielectric type's special case is fitted with the exact
     Fresnel equations and with Schlick's form; if Schlick's fits it better
     (:func:`~twoscale.fit.material_type.choose_fresnel`), the full model is fitted with both
@@ -266,7 +276,29 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
         sub_groups, sub_cands = make_candidates(
             spec_cfgs, [adapter_for(c).starts(prep.stats) for c in spec_cfgs], sub_fixed
         )
-        sub_stages = tuple(st for st in settings.stages if st.n_cells is not None)
+        if warm is not None:
+            # The special cases' solves first (in order of use), then the full models' (their
+            # layouts do not depend on the start values): compiled while the special cases fit.
+            for c in sub_cands:
+                warm.submit(sub_groups[c.group], c.y)
+            full = [(cfg, adapter_for(cfg).starts(prep.stats)) for cfg in configs]
+            full = [(cfg, sl[:1]) for cfg, sl in full if sl]
+            if full:
+                f_groups, f_cands = make_candidates(
+                    [cfg for cfg, _ in full], [sl for _, sl in full], settings.fixed
+                )
+                for c in f_cands:
+                    warm.submit(f_groups[c.group], c.y)
+                # The evaluation on the MERL grid that the type choice and the record use.
+                for gi, g in enumerate(f_groups):
+                    c = next(c for c in f_cands if c.group == gi)
+                    p0 = Problem(g.adapter, g.layout, settings.metric).params(c.y, g.frozen)
+                    warm.submit_call(
+                        ("grid", g.adapter.config), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
+                    )
+        # The screening stages: every stage but the last, where a single candidate of the
+        # chosen type is refined (the full model refines its own solution there).
+        sub_stages = settings.stages[:-1]
         ts = time.perf_counter()
         best_sub, sub_log, _, _ = _run_schedule(
             prep,
@@ -276,6 +308,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say):
             settings.solver_settings,
             lambda msg: say(f"[diffraction off, for the nested starts] {msg}"),
             choose=False,
+            warm=warm,
         )
         best = {}  # group index -> its best special-case candidate (best_sub is sorted)
         for c in best_sub:
@@ -424,7 +457,7 @@ def fit(
         rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).
         se_tol: also stop when the Gauss-Newton step is below this many standard errors.
         nested: with the default starts and the diffraction lobe on, first fit the same model
-            with the diffraction lobe off (fewer parameters, cheap; the subsample stages), then
+            with the diffraction lobe off (fewer parameters, cheap; every stage but the last), then
             start the full model from that solution: once with a weak diffraction lobe
             (``A_spec(0) = 0.95``, the *nested* start, carried through every subsample stage)
             and once per point of a small (c, A_spec(0)) grid. The full model contains the
@@ -479,13 +512,18 @@ def fit(
         f"{prep.n_fit} cells fitted of {len(prep.selection.valid)} valid; metric "
         f"{settings.metric}; {len(settings.stages)} stages"
     )
-    # Phase 2: the candidates.
-    configs, groups, cands, fresnel_selection = _make_starts(prep, configs, settings, say)
-    say(f"{len(cands)} starts")
-    # Phases 3 and 4: every stage, and the material type after the second-last one.
-    cands, stage_log, type_selection, fresnel_choice = _run_schedule(
-        prep, groups, cands, settings.stages, settings.solver_settings, say, choose=True
-    )
+    # Phase 2: the candidates. Each configuration's solve is compiled in the background ahead
+    # of its first use (solver.Warmup).
+    warm = _solver.Warmup(prep.buffer, settings.solver_settings)
+    try:
+        configs, groups, cands, fresnel_selection = _make_starts(prep, configs, settings, say, warm)
+        say(f"{len(cands)} starts")
+        # Phases 3 and 4: every stage, and the material type after the second-last one.
+        cands, stage_log, type_selection, fresnel_choice = _run_schedule(
+            prep, groups, cands, settings.stages, settings.solver_settings, say, True, warm
+        )
+    finally:
+        warm.close()
     for mat, entry in (fresnel_selection or {}).items():
         if mat in fresnel_choice:
             entry.update(fresnel_choice[mat])

@@ -17,7 +17,9 @@ class Stage:
         round_steps: the solver runs in rounds of this many steps (the first step of a round
             evaluates its starting point; at least 2); a start has converged when
             the solver's own tests say so, or when a round lowers the RMS by less than
-            :data:`STALL_RTOL` (relative): further steps would not change the fit.
+            :func:`~twoscale.fit.solver.stall_rtol` (relative; 1e-4, or less than a tenth of
+            the subsample's own resolution ``1/√m`` on ``m`` residuals where that is larger):
+            further steps would not change the fit, or not measurably on these cells.
     """
 
     n_cells: int | None

@@ -7,10 +7,12 @@ per model configuration and buffer shape, shared by every start and stage).
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -33,6 +35,19 @@ SE_TOL = 0.05
 #: A round of ``Stage.round_steps`` solver steps that lowers the RMS by less than this fraction
 #: ends the start as converged (the RMS is stationary to the 4 digits a report shows).
 STALL_RTOL = 1e-4
+
+
+#: On a subsample of ``m`` residuals, the RMS itself is known to about ``1/√(2m)`` (relative):
+#: a round that lowers it by less than this fraction of ``1/√m`` also ends the start
+#: (:func:`stall_rtol`). On the screening stages (4 096 cells: ≈ 9e-4; 32 768: ≈ 3e-4) that stops
+#: the slow creep along flat valleys that no comparison on such a subsample could resolve; on
+#: 262 144 cells and more, :data:`STALL_RTOL` is the larger one.
+STALL_RESOLUTION = 0.1
+
+
+def stall_rtol(m: int) -> float:
+    """Relative RMS change per round below which a start on ``m`` residuals has converged."""
+    return max(STALL_RTOL, STALL_RESOLUTION / math.sqrt(max(m, 1)))
 
 
 #: Static bound of the solver loop; the per-stage limit (``Stage.max_steps``) is a dynamic value,
@@ -195,6 +210,73 @@ class SolverSettings:
     se_tol: float
 
 
+def _run_solve(g: Group, y0, data, n_active: int, cap: int, m: int, scale, opts):
+    """One call of the compiled :func:`solve` for a candidate of group ``g``."""
+    return solve(
+        Problem(g.adapter, g.layout, opts.metric),
+        y0,
+        g.frozen,
+        data,
+        jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
+        jnp.int32(cap),  # dynamic too
+        jnp.int32(m),
+        jnp.asarray(scale),
+        opts.rtol,
+        opts.atol,
+        opts.se_tol,
+        opts.solver,
+    )
+
+
+def _group_key(g: Group, opts) -> tuple:
+    return (g.adapter.config, g.layout, opts.metric, opts.solver)
+
+
+class Warmup:
+    """Compiles the solves of groups that a fit will need, in one background thread.
+
+    Each call of :meth:`submit` queues a call of the compiled :func:`solve` on no cells (one
+    solver step that only evaluates its start): its result is discarded, but the call traces
+    and compiles the solve, and JAX keeps the compiled function for every later call with the
+    same configuration and shapes. XLA compiles without holding Python's lock, so the fit's
+    current solves (one core at a few thousand cells) and the compilation of the next
+    configurations (the other core) overlap. :meth:`wait` is called before a group's first
+    solve, so no solve is compiled twice; a warm-up that fails only costs its time (the
+    fit's own call then compiles, or raises, as without it).
+    """
+
+    def __init__(self, data, opts):
+        self._data, self._opts = data, opts
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="twoscale-warmup")
+        self._futures: dict = {}
+
+    def submit(self, g: Group, y0) -> None:
+        key = _group_key(g, self._opts)
+        if key not in self._futures and g.layout.size > 0:
+            self._futures[key] = self._pool.submit(
+                lambda: jax.block_until_ready(
+                    _run_solve(g, y0, self._data, 0, 1, 1, np.ones(g.layout.size), self._opts)
+                )
+            )
+
+    def submit_call(self, key, fn) -> None:
+        """Queue ``fn()`` (e.g. a call that compiles another function the fit will use) under
+        ``key``; :meth:`wait_key` waits for it."""
+        if key not in self._futures:
+            self._futures[key] = self._pool.submit(lambda: jax.block_until_ready(fn()))
+
+    def wait(self, g: Group) -> None:
+        self.wait_key(_group_key(g, self._opts))
+
+    def wait_key(self, key) -> None:
+        future = self._futures.get(key)
+        if future is not None:
+            concurrent.futures.wait([future])
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts):
     """Run the solver on one candidate for one stage, in rounds (see :class:`Stage`).
 
@@ -205,20 +287,7 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     n = g.layout.size
 
     def run(y0, cap, scale):
-        return solve(
-            problem,
-            y0,
-            g.frozen,
-            data,
-            jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
-            jnp.int32(cap),  # dynamic too
-            jnp.int32(m),
-            jnp.asarray(scale),
-            opts.rtol,
-            opts.atol,
-            opts.se_tol,
-            opts.solver,
-        )
+        return _run_solve(g, y0, data, n_active, cap, m, scale, opts)
 
     y = cand.y
     if n == 0:
@@ -231,6 +300,7 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     else:
         jtj = np.asarray(cand.jtj) * (m / max(cand.m, 1))  # JᵀJ grows with m
     steps, rr = 0, math.nan
+    stall = stall_rtol(m)
     while steps < stage.max_steps:
         # At least 2: the first step of a solve only evaluates its starting point.
         cap = max(2, min(stage.round_steps, stage.max_steps - steps))
@@ -249,6 +319,6 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
             return y, rr, jtj, steps, False, msg
         # RMS relative change ≈ half the relative change of rᵀr; a round whose steps were all
         # rejected says nothing (the damping was still growing).
-        if int(moves) > 0 and 0.5 * fell < STALL_RTOL:
-            return y, rr, jtj, steps, True, f"converged (RMS changed < {STALL_RTOL:g} in a round)"
+        if int(moves) > 0 and 0.5 * fell < stall:
+            return y, rr, jtj, steps, True, f"converged (RMS changed < {stall:.2g} in a round)"
     return y, rr, jtj, steps, False, "step limit reached"
