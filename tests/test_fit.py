@@ -341,6 +341,18 @@ def test_choose_type_tie_goes_to_the_physical_type():
     red_body = TwoScaleParams.plastic(0.1, 1.0, (1.5, 1.5, 1.5), (0.04, 1e-5, 1e-5))
     tie = choose_type({"conductor": (0.100, fake_metal), "plastic": (0.101, red_body)})
     assert tie[0] == "plastic" and "k <" in tie[1]
+    # k ≈ 0.6-1 (a fabric fitted as a conductor, η < 1) is no metal's: every metal has k > 1.68
+    # in the visible. Gold's k (1.8 in blue) is a metal's.
+    fabric_as_metal = TwoScaleParams.conductor(0.7, 0.5, (0.7, 0.65, 0.6), (0.98, 0.75, 0.59))
+    tie = choose_type({"conductor": (0.1000, fabric_as_metal), "plastic": (0.1005, plastic)})
+    assert tie[0] == "plastic" and "k < 1.5" in tie[1]
+    gold = TwoScaleParams.conductor(0.1, 1.0, (0.18, 0.42, 1.37), (3.4, 2.35, 1.8))
+    assert choose_type({"conductor": (0.1005, gold), "plastic": (0.1000, plastic)})[0] == (
+        "plastic"
+    )  # both plausible: the lower RMS
+    assert choose_type({"conductor": (0.1000, gold), "plastic": (0.1005, plastic)})[0] == (
+        "conductor"
+    )
 
 
 def test_choose_type_a_conductor_without_the_measured_body_loses():
@@ -411,8 +423,8 @@ def test_no_progress_raises(ct_noisy, monkeypatch):
     real = solver.solve
 
     def stuck(problem, y0, *args):
-        _, res, _, k, _, rr0, _, jtj = real(problem, y0, *args)
-        return y0, res, False, k, 0, rr0, rr0, jtj  # y never moves, no accepted step
+        _, res, _, k, _, rr, jtj = real(problem, y0, *args)
+        return y0, res, False, k, 0, rr, jtj  # y never moves, no accepted step
 
     monkeypatch.setattr(solver, "solve", stuck)
     with pytest.raises(driver.FitError, match="progress"):

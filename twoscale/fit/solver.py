@@ -150,9 +150,9 @@ def solve(
 
     The solver works on ``z = (y − y0)/scale``. Its first step only evaluates the residuals and
     their Jacobian at ``y0`` (so a solve of ``step_cap`` steps makes ``step_cap − 1`` moves).
-    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y0, rᵀr at y, JᵀJ at y)`` (``JᵀJ`` in ``y``,
-    from the solver's final linearisation, and ``rᵀr`` from its compressed residual: no extra
-    linearisation). ``converged``: the solver's own test or the standard-error test, not the
+    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y, JᵀJ at y)`` (``JᵀJ`` in
+    ``y``, from the solver's final linearisation, and ``rᵀr`` from its compressed residual: no
+    extra pass over the data; a solve of one step gives them at ``y0``). ``converged``: the solver's own test or the standard-error test, not the
     step limit.
     """
     solver = make_solver(solver_name, rtol, atol)
@@ -174,12 +174,11 @@ def solve(
     j_c = sol.state.f_info.jac.as_matrix() / scale[None, :]  # back to y
     # |r̃|² = rᵀr at the last accepted point (compressed residuals).
     rr = jnp.sum(sol.state.f_info.residual**2)
-    rr0 = sum_squares(problem, y0, frozen, data, n_active)  # a primal pass: the round's reference
     converged = (sol.state.terminate | small_step(sol.state, options)) & (
         sol.result == optx.RESULTS.successful
     )
     moves = sol.state.num_accepted_steps - 1  # accepted steps after the evaluation of y0
-    return y, sol.result, converged, sol.stats["num_steps"], moves, rr0, rr, j_c.T @ j_c
+    return y, sol.result, converged, sol.stats["num_steps"], moves, rr, j_c.T @ j_c
 
 
 @eqx.filter_jit
@@ -293,19 +292,18 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     if n == 0:
         rr = float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
         return y, rr, np.zeros((0, 0)), 0, True, "every parameter fixed"
-    if cand.jtj is None:
-        # A solve of one step only linearises at y: JᵀJ for the scales (Marquardt's scaling).
-        *_, jtj = run(y, 1, np.ones(n))
-        jtj = np.asarray(jtj)
-    else:
-        jtj = np.asarray(cand.jtj) * (m / max(cand.m, 1))  # JᵀJ grows with m
-    steps, rr = 0, math.nan
+    # A solve of one step only linearises at y: rᵀr there (each round's reference, for the stall
+    # rule; a round then starts where the last one ended) and JᵀJ for the scales (Marquardt's
+    # scaling), on this stage's cells.
+    *_, rr, jtj = run(y, 1, np.ones(n))
+    rr, jtj = float(rr), np.asarray(jtj)
+    steps = 0
     stall = stall_rtol(m)
     while steps < stage.max_steps:
         # At least 2: the first step of a solve only evaluates its starting point.
         cap = max(2, min(stage.round_steps, stage.max_steps - steps))
-        y_new, res, conv, k, moves, rr0, rr_new, jtj_new = run(y, cap, scales(jtj))
-        rr0, rr_new = float(rr0), float(rr_new)
+        y_new, res, conv, k, moves, rr_new, jtj_new = run(y, cap, scales(jtj))
+        rr0, rr_new = rr, float(rr_new)
         msg = result_message(res)
         steps += int(k)
         cand.moves += int(moves)
