@@ -92,7 +92,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--max-theta", type=float, help="fit only θ_i, θ_o ≤ this angle (degrees)")
     sched = ap.add_mutually_exclusive_group()
-    sched.add_argument("--preview", action="store_true", help="faster: no last refinement")
+    sched.add_argument(
+        "--preview",
+        action="store_true",
+        help="faster: fewer starts (starts='few'), no last refinement",
+    )
     sched.add_argument(
         "--full", action="store_true", help="last refinement on every valid cell (slower)"
     )
@@ -183,8 +187,9 @@ def enable_compile_cache(log) -> Path | None:
         log(f"compilation cache off: cannot create {path} ({err.strerror or err})")
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    # The fit's solves take seconds to compile; tiny functions are not worth a file.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # Every compiled function, the small ones too: the pictures and the albedo table make dozens
+    # of them (≈ 1.5 s of a warm run when they were compiled again each time).
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
 
 
@@ -373,6 +378,7 @@ def _run(args, log) -> int:
             max_theta_deg=args.max_theta,
             fixed=fixed,
             schedule="preview" if args.preview else "full" if args.full else "default",
+            starts="few" if args.preview else "default",
             solver=args.solver,
             seed=args.seed,
             fresnel=None if args.baseline else args.fresnel,
