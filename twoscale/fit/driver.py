@@ -20,7 +20,7 @@ import numpy as np
 
 from twoscale.fit import solver as _solver
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.candidates import keep_best, make_candidates, nested_starts
+from twoscale.fit.candidates import NESTED_LABEL, keep_best, make_candidates, nested_starts
 from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells
 from twoscale.fit.evaluation import (
     fit_warnings,
@@ -187,6 +187,27 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
     return cands, stage_log, type_selection, fresnel_choice
 
 
+#: Named start sets: ``"default"``, and ``"few"`` (what ``--preview`` uses): the special case
+#: from p = 1 only (per material type), the full model from the nested start and the strong,
+#: narrow lobe of :data:`~twoscale.fit.candidates.NESTED_GRID` (b = 30 µm) only; other models
+#: from the middle one of their starts.
+START_SETS = ("default", "few")
+
+
+#: The one grid point of the nested starts that ``starts="few"`` keeps (c, A_spec(0), b µm).
+FEW_GRID_POINT = (1.5, 0.05, 30.0)
+
+
+def _few(start_list, nested: bool):
+    """The ``starts="few"`` subset of a start list (adapter starts, or :func:`nested_starts`)."""
+    if nested:
+        c, a, b = FEW_GRID_POINT
+        keep = (NESTED_LABEL, f"c={c:g} A_spec(0)={a:g} b={b:g}")
+        return [(label, s) for label, s in start_list if any(label.endswith(k) for k in keep)]
+    out = [(label, s) for label, s in start_list if label.split()[0] == "p=1"]
+    return out or start_list[len(start_list) // 2 :][:1]  # other models: the middle start
+
+
 @dataclasses.dataclass(frozen=True)
 class FitSettings:
     """Every setting of a fit, validated, as one value (so no phase drops one on the way; the
@@ -208,9 +229,9 @@ class FitSettings:
 
     def __post_init__(self):
         check_metric(self.metric)
-        if isinstance(self.starts, str) and self.starts != "default":
+        if isinstance(self.starts, str) and self.starts not in START_SETS:
             raise ValueError(
-                f"starts must be 'default' or a list of parameters, got {self.starts!r}"
+                f"starts must be one of {START_SETS} or a list of parameters, got {self.starts!r}"
             )
         _solver.make_solver(self.solver, self.rtol, self.atol)  # check the name before any work
 
@@ -263,7 +284,13 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
         start_lists = [[(f"start {i}", s) for i, s in enumerate(settings.starts)]]
         return configs, *make_candidates(configs, start_lists, settings.fixed), None
     selection = None
-    start_lists = [adapter_for(cfg).starts(prep.stats) for cfg in configs]
+    few = settings.starts == "few"
+
+    def data_starts(cfg):
+        out = adapter_for(cfg).starts(prep.stats)
+        return _few(out, nested=False) if few else out
+
+    start_lists = [data_starts(cfg) for cfg in configs]
     if settings.nested and any(adapter_for(cfg).diffraction for cfg in configs):
         spec_cfgs = [dataclasses.replace(cfg, diffraction=False) for cfg in configs]
         twins = {}  # index of a dielectric configuration -> index of its Schlick twin
@@ -274,7 +301,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                     spec_cfgs.append(dataclasses.replace(spec_cfgs[gi], fresnel="schlick"))
         sub_fixed = {k: v for k, v in settings.fixed.items() if k not in ("sigma_s", "b", "c")}
         sub_groups, sub_cands = make_candidates(
-            spec_cfgs, [adapter_for(c).starts(prep.stats) for c in spec_cfgs], sub_fixed
+            spec_cfgs, [data_starts(c) for c in spec_cfgs], sub_fixed
         )
         if warm is not None:
             # The special cases' solves first (in order of use), then the full models' (their
@@ -341,6 +368,8 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             g = sub_groups[source[gi]]
             p = Problem(g.adapter, g.layout, settings.metric).params(best[source[gi]].y, g.frozen)
             start_lists[gi] = nested_starts(p, cfg, settings.fixed)
+            if few:
+                start_lists[gi] = _few(start_lists[gi], nested=True)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
     if settings.fresnel == "auto" and selection is None:
         selection = {
@@ -445,8 +474,10 @@ def fit(
         metric: ``"log"`` (default, Löw et al. 2012) or ``"linear"``; both cosine-weighted.
         max_theta_deg: fit only cells with ``θ_i, θ_o ≤`` this angle (errors still on all cells).
         fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
-        starts: ``"default"`` (placed from the data) or a list of parameter objects (needs a
-            single material type).
+        starts: ``"default"`` (placed from the data), ``"few"`` (a subset of those: the
+            special case from p = 1 only, the full model from the nested start and one strong,
+            narrow diffraction lobe; the CLI's ``--preview``) or a list of parameter objects
+            (needs a single material type).
         schedule: ``"default"``, ``"preview"`` (no last refinement), ``"full"`` (the last
             refinement on every fitted cell) or a list of :class:`Stage`.
             After each stage the best ``keep`` *distinct* solutions go on: a start that ended
