@@ -84,6 +84,8 @@ def test_success_and_load_back(files, tmp_path, capsys):
     assert res.converged and res.model == "cook-torrance-ggx"
     np.testing.assert_allclose(res.params.alpha, 0.2, rtol=1e-3)
     raw = json.loads((out / "params.json").read_text())
+    assert raw["settings"]["starts"] == "few"  # --preview: fewer starts, no last stage
+    assert len(raw["settings"]["schedule"]) == 2
     assert CookTorranceParams.from_dict(raw["params"]).to_dict() == res.params.to_dict()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
     # A second run into the existing folder replaces the files.
