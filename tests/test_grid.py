@@ -19,6 +19,9 @@ from twoscale.fit.residuals import Layout, Problem, normal_equations
 from twoscale.fit.synthetic import synthetic
 from twoscale.geometry import _dirs_from_half_diff
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 CONDUCTOR = twoscale.TwoScaleParams.conductor(
     beta=0.1, p=1.5, eta=(0.2, 0.5, 1.4), k=(3.5, 2.5, 1.9), sigma_s=0.01, b=1.5, c=2.2
 )
@@ -85,10 +88,11 @@ def _small_grid(convention="lower"):
 
 def _check_grid_gradients(case):
     """Parameter gradients of the grid path equal those of brdf at the same directions, and its
-    forward-mode Jacobian (the fit's) equals its reverse-mode one (through the custom JVP rule of
-    G). Three compiled functions: the grid path's reverse and forward Jacobians, and brdf's
-    reverse gradient of a weighted sum, which the reverse Jacobian contracted with the weights
-    must reproduce."""
+    forward-mode Jacobian (the fit's) equals its reverse mode (through the custom JVP rule of G).
+    Three compiled functions: the reverse gradient of a random weighting of the grid path's
+    values, the same of brdf's, and the grid path's forward Jacobian, which contracted with the
+    weights must give the same gradient (a random projection of the whole Jacobian: a column
+    that differs would differ there too, except on a set of weights of measure zero)."""
     params, cfg = CASES[case]
     grid, wi, wo = _small_grid()
     weights = np.random.default_rng(0).random(wi.shape[:-1] + (3,))
@@ -96,14 +100,19 @@ def _check_grid_gradients(case):
     def loss_ref(p):
         return jnp.sum(jnp.asarray(weights) * model.brdf(p, wi, wo, cfg))
 
-    jr = jax.jit(jax.jacrev(lambda p: model.brdf_grid(p, grid, cfg)))(params)
+    def loss_grid(p):
+        return jnp.sum(jnp.asarray(weights) * model.brdf_grid(p, grid, cfg))
+
+    gr = jax.jit(jax.grad(loss_grid))(params)
     jf = jax.jit(jax.jacfwd(lambda p: model.brdf_grid(p, grid, cfg)))(params)
     ref = jax.jit(jax.grad(loss_ref))(params)
-    for a, b in zip(jax.tree_util.tree_leaves(jr), jax.tree_util.tree_leaves(ref), strict=True):
-        grad_grid = np.tensordot(weights, np.asarray(a), axes=weights.ndim)
-        np.testing.assert_allclose(grad_grid, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
-    for a, b in zip(jax.tree_util.tree_leaves(jf), jax.tree_util.tree_leaves(jr), strict=True):
+    for a, b in zip(jax.tree_util.tree_leaves(gr), jax.tree_util.tree_leaves(ref), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
+    for a, b in zip(jax.tree_util.tree_leaves(jf), jax.tree_util.tree_leaves(gr), strict=True):
+        a = np.asarray(a)
+        projected = np.tensordot(weights, a, axes=weights.ndim)
+        assert np.all(np.isfinite(a)) and np.abs(a).max() > 0.0
+        np.testing.assert_allclose(projected, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
 
 
 def test_brdf_grid_gradients_match_brdf():
