@@ -24,6 +24,27 @@ def shared_data():
 
 
 @pytest.fixture(autouse=True, scope="module")
+def _compile_quickly(request):
+    """XLA without most of its optimisations for modules that set ``COMPILE_QUICKLY = True``.
+
+    Those modules check values and gradients of many configurations, each evaluated a few times
+    at small sizes: their time is compilation, which this halves (tests/test_model.py: 226 s ->
+    145 s in one process, the same tests passing). Optimisation passes do not change what is
+    computed; modules whose time is spent running compiled code (fits, renders) keep them.
+    """
+    if not getattr(request.module, "COMPILE_QUICKLY", False):
+        yield
+        return
+    # A flag JAX reads when it compiles (jax._src.compiler), initialised from this variable.
+    before = os.environ.get("JAX_DISABLE_MOST_OPTIMIZATIONS", "").lower() in ("1", "true")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", before)
+
+
+@pytest.fixture(autouse=True, scope="module")
 def _release_compiled_code():
     """Drop JAX's compiled executables after each test module.
 

@@ -14,6 +14,9 @@ from twoscale import geometry, model, psd, shadowing, spectral
 from twoscale._numerics import asinh_nonneg
 from twoscale.tables import Axis, Table
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 CONDUCTOR = twoscale.TwoScaleParams.conductor(
     beta=0.1, p=1.5, eta=(0.2, 0.5, 1.4), k=(3.5, 2.5, 1.9), sigma_s=0.01, b=1.5, c=2.2
 )

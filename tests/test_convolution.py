@@ -24,6 +24,9 @@ from twoscale.convolution import (
 )
 from twoscale.tables import load_table
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 
 def lobe64(*args, **kw):
     """``lobe`` with float64 arguments (weak Python scalars alone would select float32)."""

@@ -8,6 +8,9 @@ import pytest
 import twoscale
 from twoscale import ModelConfig, TwoScaleParams
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 LAMBERT = ModelConfig(material="plastic", diffuse_fresnel=False)
 FRESNEL = ModelConfig(material="plastic")
 PARAMS = TwoScaleParams.plastic(

@@ -16,6 +16,9 @@ from twoscale.config import ModelConfig
 from twoscale.model import albedo, apparatus_factor, brdf, lobes, polarisation_q
 from twoscale.params import TwoScaleParams
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 
 def _params(material, **kw):
     base = dict(beta=0.15, p=1.3, sigma_s=0.03, b=1.2, c=2.1, e=0.8)

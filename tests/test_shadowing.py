@@ -28,6 +28,9 @@ from twoscale.shadowing import (
 )
 from twoscale.tables import load_table
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation.
+COMPILE_QUICKLY = True
+
 PATHS = ("exact", "tables")
 
 # Jitted once per path (eager JAX compiles every primitive per new shape); jit = eager is tested.
