@@ -445,22 +445,22 @@ def test_few_starts_subset(ct_clean):
     from twoscale import TwoScaleParams
     from twoscale.config import ModelConfig
     from twoscale.fit.candidates import NESTED_LABEL, nested_starts
-    from twoscale.fit.driver import FEW_GRID_POINT, _few
+    from twoscale.fit.driver import FEW_NESTED_GRID, _few_data_starts
 
     stats = data_stats(np.asarray(ct_clean.values), np.asarray(ct_clean.valid))
     cfg = ModelConfig(material="conductor", apparatus=True)
     special = adapter_for(ModelConfig(material="conductor", diffraction=False, apparatus=True))
     all_special = special.starts(stats)
-    few_special = _few(all_special, nested=False)
+    few_special = _few_data_starts(all_special)
     assert few_special and len(few_special) < len(all_special)
     assert all(label.split()[0] == "p=1" for label, _ in few_special)
     params = TwoScaleParams.conductor(0.1, 1.0, (0.2, 0.4, 1.3), (3.4, 2.4, 1.8), e=1.0)
-    nested = nested_starts(params, cfg, {})
-    kept = [label for label, _ in _few(nested, nested=True)]
+    nested = nested_starts(params, cfg, {}, FEW_NESTED_GRID)
+    kept = [label for label, _ in nested]
     assert len(kept) == 2 and kept[0] == NESTED_LABEL
-    assert f"b={FEW_GRID_POINT[2]:g}" in kept[1]
+    assert f"b={FEW_NESTED_GRID[0][2]:g}" in kept[1]
     # A start list without a p = 1 start keeps its middle start.
     other = [("a", 1), ("b", 2), ("c", 3)]
-    assert _few(other, nested=False) == [("b", 2)]
+    assert _few_data_starts(other) == [("b", 2)]
     with pytest.raises(ValueError, match="few"):
         fit(ct_clean, config=CT, starts="several")

@@ -89,21 +89,20 @@ NESTED_GRID = (
 )
 
 
-def nested_starts(params, cfg, fixed: dict) -> list[tuple[str, object]]:
+def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str, object]]:
     """Starts of the full model ``cfg`` from the fit of its diffraction-off special case.
 
     The specular parameters (β, p, η, k or ρ_d, e) are those of the special case's fit; the
     nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
-    itself, with a weak diffraction lobe whose gradient is not 0) and the points of
-    :data:`NESTED_GRID`.
+    itself, with a weak diffraction lobe whose gradient is not 0) and the points ``(c,
+    A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`).
     """
     from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
 
     wl = float(np.median(np.asarray(cfg.wavelengths)))
     out = []
     for label, a_spec, c, b in [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
-        (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b)
-        for c, a, b in NESTED_GRID
+        (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b) for c, a, b in grid
     ]:
         c = float(fixed.get("c", c))
         b = float(fixed.get("b", b))

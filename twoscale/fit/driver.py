@@ -20,7 +20,7 @@ import numpy as np
 
 from twoscale.fit import solver as _solver
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.candidates import NESTED_LABEL, keep_best, make_candidates, nested_starts
+from twoscale.fit.candidates import NESTED_GRID, keep_best, make_candidates, nested_starts
 from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells
 from twoscale.fit.evaluation import (
     fit_warnings,
@@ -194,18 +194,20 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
 START_SETS = ("default", "few")
 
 
-#: The one grid point of the nested starts that ``starts="few"`` keeps (c, A_spec(0), b µm).
-FEW_GRID_POINT = (1.5, 0.05, 30.0)
+#: The nested-start grid of ``starts="few"`` (c, A_spec(0), b µm): the strong, narrow lobe of
+#: :data:`~twoscale.fit.candidates.NESTED_GRID` only.
+FEW_NESTED_GRID = ((1.5, 0.05, 30.0),)
 
 
-def _few(start_list, nested: bool):
-    """The ``starts="few"`` subset of a start list (adapter starts, or :func:`nested_starts`)."""
-    if nested:
-        c, a, b = FEW_GRID_POINT
-        keep = (NESTED_LABEL, f"c={c:g} A_spec(0)={a:g} b={b:g}")
-        return [(label, s) for label, s in start_list if any(label.endswith(k) for k in keep)]
-    out = [(label, s) for label, s in start_list if label.split()[0] == "p=1"]
-    return out or start_list[len(start_list) // 2 :][:1]  # other models: the middle start
+def _few_data_starts(start_list):
+    """The ``starts="few"`` subset of an adapter's starts: those from p = 1 (the two-scale
+    models), or the middle start (models without p)."""
+    out = [
+        (label, s)
+        for label, s in start_list
+        if getattr(s, "p", None) is not None and float(s.p) == 1.0
+    ]
+    return out or start_list[len(start_list) // 2 :][:1]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -288,7 +290,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
 
     def data_starts(cfg):
         out = adapter_for(cfg).starts(prep.stats)
-        return _few(out, nested=False) if few else out
+        return _few_data_starts(out) if few else out
 
     start_lists = [data_starts(cfg) for cfg in configs]
     if settings.nested and any(adapter_for(cfg).diffraction for cfg in configs):
@@ -367,9 +369,8 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 continue
             g = sub_groups[source[gi]]
             p = Problem(g.adapter, g.layout, settings.metric).params(best[source[gi]].y, g.frozen)
-            start_lists[gi] = nested_starts(p, cfg, settings.fixed)
-            if few:
-                start_lists[gi] = _few(start_lists[gi], nested=True)
+            grid = FEW_NESTED_GRID if few else NESTED_GRID
+            start_lists[gi] = nested_starts(p, cfg, settings.fixed, grid)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
     if settings.fresnel == "auto" and selection is None:
         selection = {

@@ -152,8 +152,8 @@ def solve(
     their Jacobian at ``y0`` (so a solve of ``step_cap`` steps makes ``step_cap − 1`` moves).
     Returns ``(y, result, converged, steps, accepted moves, rᵀr at y, JᵀJ at y)`` (``JᵀJ`` in
     ``y``, from the solver's final linearisation, and ``rᵀr`` from its compressed residual: no
-    extra pass over the data; a solve of one step gives them at ``y0``). ``converged``: the solver's own test or the standard-error test, not the
-    step limit.
+    extra pass over the data; a solve of one step gives them at ``y0``). ``converged``: the
+    solver's own test or the standard-error test, not the step limit.
     """
     solver = make_solver(solver_name, rtol, atol)
 
