@@ -33,6 +33,7 @@ class Candidate:
     m: int = 0  # residuals in that stage
     nested: bool = False  # the nested start: carried through every stage (see fit(nested=...))
     moves: int = 0  # accepted solver steps so far
+    twin: str | None = None  # this stage: stopped on reaching this candidate's minimum
 
 
 #: Two solutions closer than this many standard errors are the same minimum (see :func:`fit`).
@@ -170,6 +171,9 @@ def keep_best(cands, groups, stage: Stage, last: bool):
         mine = sorted((c for c in finite if c.group == gi), key=lambda c: c.cost)
         chosen: list[Candidate] = []
         for c in mine:
+            if c.twin is not None:  # stopped on its way into a finished start's minimum
+                duplicates[c.label] = c.twin
+                continue
             # A solution within DUPLICATE_SE standard errors of a better kept one is the same
             # minimum reached from another start: dropped, so no minimum is refined twice.
             twin = next((k for k in chosen if same_solution(k, c)), None)

@@ -20,7 +20,13 @@ import numpy as np
 
 from twoscale.fit import solver as _solver
 from twoscale.fit.adapters import adapter_for
-from twoscale.fit.candidates import NESTED_GRID, keep_best, make_candidates, nested_starts
+from twoscale.fit.candidates import (
+    NESTED_GRID,
+    keep_best,
+    make_candidates,
+    nested_starts,
+    same_solution,
+)
 from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells
 from twoscale.fit.evaluation import (
     fit_warnings,
@@ -118,6 +124,17 @@ def _choose_groups(kept, groups, n_cells: int, stage: int, say):
     return chosen, choice
 
 
+def _twin_finder(cand, done):
+    """``twin(y)`` for :func:`~twoscale.fit.solver.refine`: the label of the first start of
+    ``done`` (finished on this stage) whose minimum ``cand`` at ``y`` has reached, or None."""
+
+    def twin(y):
+        probe = dataclasses.replace(cand, y=y)
+        return next((d.label for d in done if same_solution(d, probe)), None)
+
+    return twin
+
+
 def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: bool, warm=None):
     """Fit every candidate through the stages; returns ``(candidates best first, stage log,
     type selection, Fresnel choice)``. The Fresnel form of a type fitted with both, then the
@@ -132,14 +149,16 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
     for si, stage in enumerate(stages):
         n_active, n_cells = prep.stage_cells(stage)
         entries = []
+        done: list = []  # starts finished on this stage, each in a minimum of its own
         for ci, cand in enumerate(cands):
             g = groups[cand.group]
             m = n_cells * g.adapter.config.n_channels
             ts = time.perf_counter()
             if warm is not None:
                 warm.wait(g)
+            cand.twin = None
             y, rr, jtj, steps, ok, msg = _solver.refine(
-                cand, g, stage, prep.buffer, n_active, m, opts
+                cand, g, stage, prep.buffer, n_active, m, opts, _twin_finder(cand, tuple(done))
             )
             cost = math.sqrt(rr / m) if math.isfinite(rr) else math.inf
             cand.y, cand.cost, cand.steps, cand.status, cand.success = y, cost, steps, msg, ok
@@ -150,6 +169,8 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 f"({time.perf_counter() - ts:.1f} s)"
             )
             entries.append({"start": cand.label, "rms": cost, "steps": steps, "status": msg})
+            if math.isfinite(cost) and cand.twin is None:
+                done.append(cand)
         stage_log.append({**stage.to_dict(), "n_cells_used": n_cells, "starts": entries})
         if not any(math.isfinite(c.cost) for c in cands):
             raise FitError("no start gave a finite fit (non-finite model values or residuals)")
@@ -483,7 +504,9 @@ def fit(
             refinement on every fitted cell) or a list of :class:`Stage`.
             After each stage the best ``keep`` *distinct* solutions go on: a start that ended
             within :data:`DUPLICATE_SE` standard errors of a better one is dropped (its stage
-            log entry says ``duplicate_of``), so no minimum is refined twice.
+            log entry says ``duplicate_of``), so no minimum is refined twice; a start whose path
+            reaches the minimum of one already finished on the stage stops there (between two
+            rounds of solver steps) and is dropped the same way.
         solver: ``"lm"`` (optimistix Levenberg-Marquardt) or ``"dogleg"``.
         seed: seed of the subsampling.
         rtol, atol: tolerances of optimistix's Cauchy test (scaled parameters, RMS norm).

@@ -276,11 +276,15 @@ class Warmup:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts):
+def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts, twin=None):
     """Run the solver on one candidate for one stage, in rounds (see :class:`Stage`).
 
     Returns ``(y, rr, jtj, steps, converged, status)``; ``cand.moves`` counts the accepted
-    solver steps (0 after a stage: no step from the start lowered the cost).
+    solver steps (0 after a stage: no step from the start lowered the cost). ``twin(y)``, when
+    given, is asked after every round that did not end the start: the label of a start already
+    finished on this stage whose minimum ``y`` has reached (within
+    :data:`~twoscale.fit.candidates.DUPLICATE_SE` standard errors), or None. On a label the start
+    stops there (``cand.twin`` = that label): it would only have gone on into the same minimum.
     """
     problem = Problem(g.adapter, g.layout, opts.metric)
     n = g.layout.size
@@ -317,6 +321,10 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
             return y, rr, jtj, steps, False, msg
         # RMS relative change ≈ half the relative change of rᵀr; a round whose steps were all
         # rejected says nothing (the damping was still growing).
+        label = None if twin is None else twin(y)
+        if label is not None:
+            cand.twin = label
+            return y, rr, jtj, steps, False, f"stopped: reached the minimum of [{label}]"
         if int(moves) > 0 and 0.5 * fell < stall:
             return y, rr, jtj, steps, True, f"converged (RMS changed < {stall:.2g} in a round)"
     return y, rr, jtj, steps, False, "step limit reached"
