@@ -182,7 +182,7 @@ def test_failed_fit_exits_3_and_leaves_nothing(files, tmp_path, capsys, monkeypa
 
     import twoscale.fit.solver as solver
 
-    def broken(cand, g, stage, data, n_active, m, opts):
+    def broken(cand, g, stage, data, n_active, m, opts, twin=None):
         return cand.y, math.nan, np.zeros((0, 0)), 1, False, "non-finite values"
 
     monkeypatch.setattr(solver, "refine", broken)

@@ -315,7 +315,7 @@ def test_failed_fit_raises(ct_noisy, monkeypatch):
     import twoscale.fit.driver as driver
     import twoscale.fit.solver as solver
 
-    def broken(cand, g, stage, data, n_active, m, opts):
+    def broken(cand, g, stage, data, n_active, m, opts, twin=None):
         return cand.y, math.nan, np.zeros((7, 7)), 3, False, "non-finite values"
 
     monkeypatch.setattr(solver, "refine", broken)
