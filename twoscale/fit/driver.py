@@ -156,7 +156,6 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
             ts = time.perf_counter()
             if warm is not None:
                 warm.wait(g)
-            cand.twin = None
             y, rr, jtj, steps, ok, msg = _solver.refine(
                 cand, g, stage, prep.buffer, n_active, m, opts, _twin_finder(cand, tuple(done))
             )

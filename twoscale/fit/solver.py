@@ -286,6 +286,7 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     :data:`~twoscale.fit.candidates.DUPLICATE_SE` standard errors), or None. On a label the start
     stops there (``cand.twin`` = that label): it would only have gone on into the same minimum.
     """
+    cand.twin = None
     problem = Problem(g.adapter, g.layout, opts.metric)
     n = g.layout.size
 
@@ -319,12 +320,11 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
             return y, rr, jtj, steps, True, "converged"
         if msg and res != optx.RESULTS.nonlinear_max_steps_reached:
             return y, rr, jtj, steps, False, msg
+        cand.twin = None if twin is None else twin(y)
+        if cand.twin is not None:
+            return y, rr, jtj, steps, False, f"stopped: reached the minimum of [{cand.twin}]"
         # RMS relative change ≈ half the relative change of rᵀr; a round whose steps were all
         # rejected says nothing (the damping was still growing).
-        label = None if twin is None else twin(y)
-        if label is not None:
-            cand.twin = label
-            return y, rr, jtj, steps, False, f"stopped: reached the minimum of [{label}]"
         if int(moves) > 0 and 0.5 * fell < stall:
             return y, rr, jtj, steps, True, f"converged (RMS changed < {stall:.2g} in a round)"
     return y, rr, jtj, steps, False, "step limit reached"
