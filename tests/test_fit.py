@@ -84,9 +84,11 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
     assert layout.size == 4
     y = layout.ravel(free)
     np.testing.assert_array_equal(layout.ravel(layout.unravel(y)), y)
-    for metric in ("log", "linear"):
+    scale = cells.log_scale()
+    assert scale.shape == (3,) and np.all(scale > 0.0)
+    for metric in ("log", "scaled-log", "linear"):
         problem = Problem(adapter, layout, metric)
-        data, n_active = pack(pair_cells(cells), n_chunks=2, chunk=2048)
+        data, n_active = pack(pair_cells(cells), n_chunks=2, chunk=2048, log_scale=scale)
 
         def full(yy, problem=problem, metric=metric):
             p = problem.params(yy, frozen)
@@ -94,6 +96,9 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
             cos = cells.cos_i[:, None]
             if metric == "log":
                 return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
+            if metric == "scaled-log":
+                cs = cos / scale
+                return (jnp.log1p(pred * cs) - jnp.log1p(cells.rho * cs)).reshape(-1)
             return ((pred - cells.rho) * cos).reshape(-1)
 
         r = full(y)
@@ -113,6 +118,30 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
         np.testing.assert_allclose(
             j_c.T @ r_c, jac.T @ r, rtol=1e-7, atol=1e-12 * np.abs(jtr).max()
         )
+
+
+def test_scaled_log_metric_is_scale_invariant(ct_noisy):
+    """The scaled log metric's scale is each channel's median ρ cos θ_i (floored), so scaling a
+    channel's data and model by k leaves its error unchanged, where the plain log metric (nearly
+    absolute below 0.1 1/sr) sees k times smaller errors on a darkened channel."""
+    from twoscale.fit.cells import LOG_SCALE_FLOOR, Cells
+    from twoscale.fit.evaluation import rmse
+
+    cells = select_cells(ct_noisy).fit
+    med = np.median(cells.rho * cells.cos_i[:, None], axis=0)
+    np.testing.assert_allclose(cells.log_scale(), np.maximum(med, LOG_SCALE_FLOOR))
+    pred = cells.rho * 1.2  # 20 % too bright everywhere
+    k = np.array([1.0, 0.01, 100.0])
+    dark = Cells(cells.wi, cells.wo, cells.rho * k, cells.index)
+    a, b = rmse(pred, cells), rmse(pred * k, dark)
+    np.testing.assert_allclose(
+        b["per_channel"]["rmse_log_scaled"], a["per_channel"]["rmse_log_scaled"], rtol=1e-9
+    )
+    assert b["per_channel"]["rmse_log"][1] < 0.1 * a["per_channel"]["rmse_log"][1]
+    black = Cells(cells.wi, cells.wo, cells.rho * [1.0, 0.0, 1.0], cells.index)
+    assert black.log_scale()[1] == LOG_SCALE_FLOOR  # a black channel stays finite
+    with pytest.raises(ValueError, match="log_scale"):
+        pack(pair_cells(cells.take(np.arange(1000))), n_chunks=1, log_scale=[1.0, 0.0, 1.0])
 
 
 def test_reciprocal_pairs(ct_clean):
@@ -203,6 +232,8 @@ def test_result_record_roundtrip(ct_noisy, tmp_path):
     assert raw["covariance"]["rank"] == 7
     back = load_result(path)
     _leaves_close(back.params, res.params, rtol=1e-15)
+    assert raw["metrics"]["rmse_log_scaled"] > 0 and len(raw["metrics"]["log_scale"]) == 3
+    assert back.rmse_log_scaled == res.rmse_log_scaled and back.log_scale == res.log_scale
     assert back.rmse_log == res.rmse_log and back.std_errors == json.loads(
         json.dumps(res.std_errors)
     )
@@ -421,6 +452,14 @@ def test_type_choice_on_synthetic_materials(material):
     )
     assert res.type_selection["chosen"] == material, res.type_selection
     assert res.material == material
+    # The default metric is the scaled log; the types are compared on the plain log metric. With
+    # every scale s_c < 1, a fit's plain log residuals are cell by cell smaller than its scaled
+    # ones (d/dx log(1 + x/s) > d/dx log(1 + x)), so the type's RMS is below its stage RMS.
+    assert res.metric == "scaled-log" and res.type_selection["metric"] == "log"
+    assert np.all(np.asarray(res.log_scale) < 1.0)
+    stage = res.stages[res.type_selection["stage"] - 1]
+    fitted = min(e["rms"] for e in stage["starts"] if e["start"].startswith(material))
+    assert res.type_selection["rms"][material] < fitted
 
 
 def test_no_progress_raises(ct_noisy, monkeypatch):

@@ -1,6 +1,6 @@
 """Command line: fit the two-scale model (or a baseline) to a MERL ``.binary`` file.
 
-    python -m twoscale.fit material.binary [--out DIR] [--metric log|linear]
+    python -m twoscale.fit material.binary [--out DIR] [--metric log|scaled-log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
         [--full] [--no-apparatus] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
         [--no-compile-cache] [--no-albedo] [--render]
@@ -62,6 +62,7 @@ import time
 from pathlib import Path
 
 from twoscale._atomic import current_umask
+from twoscale.fit.residuals import METRICS
 from twoscale.fit.synthetic import EXAMPLE  # the --example material
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
@@ -82,7 +83,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("material", nargs="?", help="MERL .binary file")
     ap.add_argument("--out", help="output folder (default: ./<name>-fit, or ./example-out)")
-    ap.add_argument("--metric", choices=("log", "linear"), default="log", help="fitted metric")
+    ap.add_argument(
+        "--metric",
+        choices=METRICS,
+        default="scaled-log",
+        help="fitted metric (docs/model.md §8)",
+    )
     ap.add_argument(
         "--material",
         dest="material_type",

@@ -14,6 +14,10 @@ import numpy as np
 
 from twoscale.merl import N_CELLS, N_THETA_D, N_THETA_H, n_first_phi_bins
 
+LOG_SCALE_FLOOR = 1e-4
+"""Least scale (1/sr) of the ``"scaled-log"`` metric: a channel whose median ``ρ cos θ_i`` is
+below this (an all-black channel) is measured in absolute terms below it."""
+
 #: Entries (cell pairs, or direction pairs) per chunk of a pass over the data: the granularity of
 #: the subsample stages (2 048 pairs ≈ 4 000 cells).
 CHUNK = 2048
@@ -52,6 +56,13 @@ class Cells:
 
     def take(self, idx) -> Cells:
         return Cells(self.wi[idx], self.wo[idx], self.rho[idx], self.index[idx])
+
+    def log_scale(self) -> np.ndarray:
+        """``(C,)``: the scale ``s_c`` of the ``"scaled-log"`` metric (docs/model.md §8): the
+        median over these cells of the measured ``ρ cos θ_i`` per channel, at least
+        :data:`LOG_SCALE_FLOOR` (1/sr)."""
+        med = np.median(self.rho * self.cos_i[:, None], axis=0)
+        return np.maximum(med, LOG_SCALE_FLOOR)
 
     def within(self, max_theta_deg: float) -> np.ndarray:
         """Mask of the cells with ``θ_i, θ_o ≤ max_theta_deg`` (1e-12 slack on the cosines)."""
@@ -169,10 +180,12 @@ def pair_cells(cells: Cells) -> Pairs:
     return Pairs(wi, wo, rho, cos, w, ih.astype(np.int32), jd.astype(np.int32), phi)
 
 
-def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK):
-    """Pairs → device buffer ``{wi, wo, rho, cos, w, hd, phi}``, ``(n_chunks, chunk, ...)``.
+def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK, log_scale=None):
+    """Pairs → device buffer ``{wi, wo, rho, cos, w, hd, phi, s}``, ``(n_chunks, chunk, ...)``.
 
-    ``hd = 90 ih + jd``: the pair's ``(θ_h, θ_d)`` bin.
+    ``hd = 90 ih + jd``: the pair's ``(θ_h, θ_d)`` bin. ``s``: ``(n_chunks, C)``, the inverse
+    of ``log_scale`` (``(C,)``, the ``"scaled-log"`` metric's scale; 1 when None) repeated for
+    every chunk, so each chunk carries it.
 
     Padding entries repeat the first pair (finite everywhere) with weight ``w = 0``.
     Returns ``(buffer, n_active)``: the number of leading chunks that hold pairs.
@@ -202,6 +215,11 @@ def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK):
         "hd": padded(pairs.ih * N_BINS_D + pairs.jd),
         "phi": padded(pairs.phi),
     }
+    n_ch = pairs.rho.shape[-1]
+    scale = np.ones(n_ch) if log_scale is None else np.asarray(log_scale, dtype=np.float64)
+    if scale.shape != (n_ch,) or not np.all(scale > 0):
+        raise ValueError(f"log_scale must be {n_ch} positive values, got {scale!r}")
+    buf["s"] = np.broadcast_to(1.0 / scale, (n_chunks, n_ch)).copy()
     return {k: jnp.asarray(v) for k, v in buf.items()}, n_active
 
 

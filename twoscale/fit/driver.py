@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from twoscale.fit import solver as _solver
@@ -62,6 +63,7 @@ class _Prepared:
     pairs: object  # Pairs, in random order: each stage fits a prefix
     cells_upto: np.ndarray  # cells held by the first k + 1 pairs
     buffer: dict  # device buffer of all pairs
+    log_scale: np.ndarray  # (C,): the "scaled-log" metric's scale, from the fitted cells
     valid_grid: np.ndarray  # (90, 90, 180) bool: the data's valid cells
 
     @property
@@ -81,6 +83,25 @@ class _Prepared:
         return n_active, n_cells
 
 
+#: The metric the material types are compared with, when it is not the fitted one. The type is
+#: a statement about the interface (the highlight's height, colour and change with θ_d), which
+#: lives in the bright cells; the scaled log metric weighs every cell by its relative error, so
+#: there the dark floor, which a plastic's diffuse layer fits and a conductor has no term for,
+#: would decide. The same fits are therefore compared on the plain log metric (docs/model.md §8).
+TYPE_METRIC = {"scaled-log": "log"}
+
+
+def _type_rms(cand, group, metric: str, buffer, n_active: int, n_cells: int) -> float:
+    """A type's best start's RMS as :func:`choose_type` compares it: its cost, or on
+    :data:`TYPE_METRIC`'s metric over the same cells."""
+    other = TYPE_METRIC.get(metric)
+    if other is None:
+        return cand.cost
+    problem = Problem(group.adapter, group.layout, other)
+    rr = float(_solver.jit_sum_squares(problem, cand.y, group.frozen, buffer, jnp.int32(n_active)))
+    return math.sqrt(rr / (n_cells * group.adapter.config.n_channels))
+
+
 def _prepare(data, max_theta_deg, seed) -> _Prepared:
     selection = select_cells(data, max_theta_deg=max_theta_deg)
     stats = data_stats(np.asarray(data.values), np.asarray(data.valid))
@@ -90,8 +111,9 @@ def _prepare(data, max_theta_deg, seed) -> _Prepared:
     pairs = pair_cells(selection.fit)
     pairs = pairs.take(rng.permutation(len(pairs)))
     cells_upto = np.cumsum(pairs.w.sum(axis=1)).astype(np.int64)
-    buffer, _ = pack(pairs)
-    return _Prepared(selection, stats, pairs, cells_upto, buffer, np.asarray(data.valid))
+    log_scale = selection.fit.log_scale()
+    buffer, _ = pack(pairs, log_scale=log_scale)
+    return _Prepared(selection, stats, pairs, cells_upto, buffer, log_scale, np.asarray(data.valid))
 
 
 def _choose_groups(kept, groups, n_cells: int, stage: int, say):
@@ -187,7 +209,7 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 c = min((c for c in kept if c.group == gi), key=lambda c: c.cost)
                 g = groups[gi]
                 best[mat] = (
-                    c.cost,
+                    _type_rms(c, g, opts.metric, prep.buffer, n_active, n_cells),
                     Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen),
                 )
             by_material = {mat: groups[gi] for mat, gi in chosen.items()}
@@ -196,7 +218,13 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                     warm.wait_key(("grid", g.adapter.config))
             winner, reason = choose_type(best, body_levels(best, by_material, prep))
             rms = {k: v[0] for k, v in best.items()}
-            type_selection = {"rms": rms, "chosen": winner, "reason": reason, "stage": si + 1}
+            type_selection = {
+                "rms": rms,
+                "metric": TYPE_METRIC.get(opts.metric, opts.metric),
+                "chosen": winner,
+                "reason": reason,
+                "stage": si + 1,
+            }
             say(
                 "material: "
                 + ", ".join(f"{k} rms {v:.5g}" for k, v in rms.items())
@@ -235,7 +263,7 @@ class FitSettings:
     """Every setting of a fit, validated, as one value (so no phase drops one on the way; the
     special-case fit of the nested starts runs with the same value)."""
 
-    metric: str = "log"
+    metric: str = "scaled-log"
     max_theta_deg: float | None = None
     fixed: dict = dataclasses.field(default_factory=dict)
     starts: str | tuple = "default"
@@ -420,7 +448,7 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, selections, setting
     warnings = fit_warnings(g, best, params, cov_info)
     valid = prep.selection.valid
     pred = predict_cells(g.adapter, params, valid)
-    errs = rmse(pred, valid)
+    errs = rmse(pred, valid, prep.log_scale)
     wall = time.perf_counter() - t0
     say(
         f"done: rms log {errs['rmse_log']:.5g}, linear {errs['rmse_linear']:.5g} "
@@ -434,6 +462,8 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, selections, setting
         rmse_linear=errs["rmse_linear"],
         rmse_log=errs["rmse_log"],
         per_channel=errs["per_channel"],
+        rmse_log_scaled=errs["rmse_log_scaled"],
+        log_scale=prep.log_scale.tolist(),
         rmse_fit=best.cost,
         n_valid=len(valid),
         n_fit=prep.n_fit,
@@ -456,7 +486,7 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, selections, setting
         stages=stage_log,
         type_selection=selections[0],
         fresnel_selection=selections[1],
-        rmse_80=rmse_within(pred, valid),
+        rmse_80=rmse_within(pred, valid, log_scale=prep.log_scale),
         warnings=warnings,
     )
 
@@ -466,7 +496,7 @@ def fit(
     *,
     config=None,
     material: str | None = None,
-    metric: str = "log",
+    metric: str = "scaled-log",
     max_theta_deg: float | None = None,
     fixed: dict | None = None,
     starts: str | Sequence = "default",
@@ -492,7 +522,9 @@ def fit(
         material: override the configuration's material type; ``"auto"`` tries conductor and
             plastic and keeps the better (compared on the last subsample stage; near-ties go to
             the physically consistent type, see :func:`~twoscale.fit.material_type.choose_type`).
-        metric: ``"log"`` (default, Löw et al. 2012) or ``"linear"``; both cosine-weighted.
+        metric: ``"scaled-log"`` (default: the log metric with each channel's ρ cos θ_i divided
+            by its median over the fitted cells), ``"log"`` (Löw et al. 2012) or ``"linear"``;
+            all cosine-weighted (docs/model.md §8).
         max_theta_deg: fit only cells with ``θ_i, θ_o ≤`` this angle (errors still on all cells).
         fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
         starts: ``"default"`` (placed from the data), ``"few"`` (a subset of those: the

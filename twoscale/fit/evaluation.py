@@ -32,28 +32,43 @@ def physical_free(problem, y, frozen, spec):
     return phys(y), jax.jacfwd(phys)(y)
 
 
-def rmse(pred: np.ndarray, cells) -> dict:
-    """RMSE of both metrics, overall and per channel, for predictions on ``cells``."""
+def rmse(pred: np.ndarray, cells, log_scale=None) -> dict:
+    """RMSE of the metrics, overall and per channel, for predictions on ``cells``: linear, log
+    and scaled log (with ``log_scale`` ``(C,)``, default ``cells.log_scale()``)."""
     cos = cells.cos_i[:, None]
     lin = (pred - cells.rho) * cos
-    log = np.log1p(np.maximum(pred, 0.0) * cos) - np.log1p(cells.rho * cos)
+    pos = np.maximum(pred, 0.0)
+    log = np.log1p(pos * cos) - np.log1p(cells.rho * cos)
+    s = cells.log_scale() if log_scale is None else np.asarray(log_scale)
+    slog = np.log1p(pos * cos / s) - np.log1p(cells.rho * cos / s)
     return {
         "rmse_linear": float(np.sqrt(np.mean(lin**2))),
         "rmse_log": float(np.sqrt(np.mean(log**2))),
+        "rmse_log_scaled": float(np.sqrt(np.mean(slog**2))),
         "per_channel": {
             "rmse_linear": np.sqrt(np.mean(lin**2, axis=0)).tolist(),
             "rmse_log": np.sqrt(np.mean(log**2, axis=0)).tolist(),
+            "rmse_log_scaled": np.sqrt(np.mean(slog**2, axis=0)).tolist(),
         },
     }
 
 
-def rmse_within(pred: np.ndarray, cells, max_theta_deg: float = 80.0) -> dict | None:
-    """:func:`rmse` on the cells with ``θ_i, θ_o ≤ max_theta_deg`` (None if there is none)."""
+def rmse_within(
+    pred: np.ndarray, cells, max_theta_deg: float = 80.0, log_scale=None
+) -> dict | None:
+    """:func:`rmse` on the cells with ``θ_i, θ_o ≤ max_theta_deg`` (None if there is none);
+    the scaled log uses ``log_scale`` (default: that of all ``cells``)."""
     ok = cells.within(max_theta_deg)
     if not ok.any():
         return None
-    e = rmse(pred[ok], cells.take(np.flatnonzero(ok)))
-    return {"log": e["rmse_log"], "linear": e["rmse_linear"], "n_cells": int(ok.sum())}
+    s = cells.log_scale() if log_scale is None else log_scale
+    e = rmse(pred[ok], cells.take(np.flatnonzero(ok)), s)
+    return {
+        "log": e["rmse_log"],
+        "scaled_log": e["rmse_log_scaled"],
+        "linear": e["rmse_linear"],
+        "n_cells": int(ok.sum()),
+    }
 
 
 def predict_cells(adapter, params, cells) -> np.ndarray:

@@ -93,9 +93,12 @@ class FitResult:
         params: fitted parameters (``TwoScaleParams`` or a baseline's params), physical units.
         model: ``"two-scale"`` or the baseline's name.
         config: the model configuration as a dict (``{"model": ..., "material": ..., ...}``).
-        metric: ``"log"`` or ``"linear"`` (the fitted metric).
+        metric: ``"log"``, ``"scaled-log"`` or ``"linear"`` (the fitted metric).
         rmse_linear, rmse_log: RMSE of both cosine-weighted metrics over all valid cells and channels.
-        per_channel: ``{"rmse_linear": [C], "rmse_log": [C]}``.
+        per_channel: ``{"rmse_linear": [C], "rmse_log": [C], "rmse_log_scaled": [C]}``.
+        rmse_log_scaled: RMSE of the scaled log metric over all valid cells and channels (with
+            ``log_scale``, the per-channel scale ``s_c`` of docs/model.md §8, whatever the fitted
+            metric); None in records written before it existed.
         rmse_fit: RMSE of the fitted metric on the fitted cells (after any angle cut).
         n_valid, n_fit: number of valid cells, of fitted cells.
         converged: the last stage ended by a convergence test (the solver's own, the
@@ -146,6 +149,8 @@ class FitResult:
     rmse_80: dict | None = None
     warnings: list = dataclasses.field(default_factory=list)
     albedo_table: dict | None = None
+    rmse_log_scaled: float | None = None
+    log_scale: list | None = None
 
     @property
     def material(self) -> str:
@@ -199,6 +204,8 @@ class FitResult:
                     "metric": self.metric,
                     "rmse_linear": self.rmse_linear,
                     "rmse_log": self.rmse_log,
+                    "rmse_log_scaled": self.rmse_log_scaled,
+                    "log_scale": self.log_scale,
                     "per_channel": self.per_channel,
                     "rmse_fit": self.rmse_fit,
                     "n_valid": self.n_valid,
@@ -235,7 +242,13 @@ class FitResult:
         lines = [
             f"model {self.model} ({self.material}), metric {self.metric}, "
             f"{self.n_fit} of {self.n_valid} valid cells fitted",
-            f"RMSE (all valid cells): log {self.rmse_log:.4g}, linear {self.rmse_linear:.4g}"
+            f"RMSE (all valid cells): log {self.rmse_log:.4g}, "
+            + (
+                f"scaled log {self.rmse_log_scaled:.4g}, "
+                if self.rmse_log_scaled is not None
+                else ""
+            )
+            + f"linear {self.rmse_linear:.4g}"
             + (
                 f"; θ_i, θ_o ≤ 80°: log {self.rmse_80['log']:.4g}, "
                 f"linear {self.rmse_80['linear']:.4g}"
@@ -287,6 +300,8 @@ def result_from_dict(d: dict) -> FitResult:
         rmse_linear=num(m["rmse_linear"]),
         rmse_log=num(m["rmse_log"]),
         per_channel=m["per_channel"],
+        rmse_log_scaled=None if m.get("rmse_log_scaled") is None else num(m["rmse_log_scaled"]),
+        log_scale=m.get("log_scale"),
         rmse_fit=num(m["rmse_fit"]),
         n_valid=int(m["n_valid"]),
         n_fit=int(m["n_fit"]),

@@ -5,6 +5,9 @@ Metrics (docs/model.md §8, Löw et al. 2012), per valid cell and channel, with 
 
 - ``"linear"``: ``r = (ρ_model − ρ_meas) cos θ_i``
 - ``"log"``:    ``r = log(1 + ρ_model cos θ_i) − log(1 + ρ_meas cos θ_i)``
+- ``"scaled-log"``: ``r = log(1 + ρ_model cos θ_i / s_c) − log(1 + ρ_meas cos θ_i / s_c)``, with
+  ``s_c`` the median measured ``ρ cos θ_i`` of channel ``c`` over the fitted cells
+  (:meth:`twoscale.fit.cells.Cells.log_scale`, carried by the buffer as ``1 / s_c``)
 
 Layout for speed and memory. Data live in a *buffer* of fixed shape ``(n_chunks, CHUNK, ...)``
 (:data:`PAIR_CHUNKS` chunks of reciprocal cell pairs for fitting, enough for every MERL cell;
@@ -50,7 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-METRICS = ("log", "linear")
+METRICS = ("log", "scaled-log", "linear")
 
 
 def check_metric(metric: str) -> str:
@@ -205,6 +208,9 @@ def metric_residual(pred, chunk, metric: str):
     cos = chunk["cos"][..., None]
     if metric == "log":
         r = jnp.log1p(pred * cos) - jnp.log1p(chunk["rho"] * cos)
+    elif metric == "scaled-log":
+        cs = cos * chunk["s"]
+        r = jnp.log1p(pred * cs) - jnp.log1p(chunk["rho"] * cs)
     else:
         r = (pred - chunk["rho"]) * cos
     return r * chunk["w"][..., None]
