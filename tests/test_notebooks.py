@@ -28,12 +28,16 @@ NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
 EXPECTED = ("quickstart", "fitting", "speed_accuracy", "stability", "rendering")
 #: Notebooks that render with Mitsuba 3 (executed only where it and libLLVM load).
 NEEDS_MITSUBA = ("rendering",)
-#: Executed in the slow set only (``-m slow``; CI runs it). The fast set executes the quickstart and
-#: the stability notebook; the library code the others call is tested directly: fitting
+#: Executed in the slow set only (``-m slow``; CI runs it): every notebook. The fast set checks
+#: that each is committed clean, that every code cell parses, and that every ``twoscale.…`` name
+#: it uses exists (:func:`test_cells_parse_and_names_exist`); the library code they call is tested
+#: directly: evaluation, lobes, gradients, spectra and albedo (tests/test_model.py,
+#: tests/test_spectral.py), the extremes (tests/test_model.py, tests/test_convolution.py), fitting
 #: (tests/test_fit.py, tests/test_recovery.py, tests/test_cli.py), speed and accuracy
 #: (tests/test_table_service.py, tests/test_convolution.py, tests/test_benchmarks.py) and rendering
-#: (tests/test_mitsuba.py, tests/test_render_cli.py). Each took 33-42 s on 2 cores.
-SLOW_NOTEBOOKS = ("fitting", "speed_accuracy", "rendering")
+#: (tests/test_mitsuba.py, tests/test_render_cli.py). Executed, they took 33-77 s each on 2 cores,
+#: the quickstart and stability ones together 77 s: an eighth of the fast set.
+SLOW_NOTEBOOKS = EXPECTED
 #: Seconds allowed per cell: each notebook takes well under a minute in all on 2 cores; the margin
 #: absorbs a loaded CI machine (the longest cell, the fit, is ≈ 20 s on an idle one).
 CELL_TIMEOUT = 300
@@ -89,6 +93,30 @@ def _source(cell: dict) -> str:
 # ------------------------------------------------------------------------- committed notebooks
 def test_expected_notebooks_exist():
     assert set(EXPECTED) <= {p.stem for p in NOTEBOOKS}, f"notebooks in {NOTEBOOK_DIR}: {NOTEBOOKS}"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
+def test_cells_parse_and_names_exist(path):
+    """Every code cell is valid Python, and every dotted name under ``twoscale`` that a cell
+    spells out (``twoscale.fit.synthetic``, ``twoscale.geometry.spherical``, ...) exists: the
+    fast set's guard against a renamed API, without executing the notebook."""
+    import importlib
+
+    nb = _load_json(path)
+    used = set()
+    for i, cell in enumerate(c for c in nb["cells"] if c["cell_type"] == "code"):
+        src = _source(cell)
+        compile(src, f"{path.name}[{i}]", "exec")  # raises SyntaxError naming the cell
+        used |= set(re.findall(r"\btwoscale(?:\.[A-Za-z_]\w*)+", src))
+    assert used, f"{path.name} uses no twoscale name"
+    for name in sorted(used):
+        parts = name.split(".")
+        obj = importlib.import_module(parts[0])
+        for k, part in enumerate(parts[1:], start=1):
+            if hasattr(obj, part):
+                obj = getattr(obj, part)
+            else:  # a submodule not imported by its package
+                obj = importlib.import_module(".".join(parts[: k + 1]))
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=_ids(NOTEBOOKS))
