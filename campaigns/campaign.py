@@ -196,15 +196,12 @@ def _baseline_config(dist: str, apparatus: bool = True):
 
 
 def _cell_rmse(pred: np.ndarray, cells) -> dict:
-    """RMSE over cells and channels of the cosine-weighted log and linear metrics (as the fit)."""
-    cos = cells.cos_i[:, None]
-    log = np.log1p(np.maximum(pred, 0.0) * cos) - np.log1p(cells.rho * cos)
-    lin = (pred - cells.rho) * cos
-    return {
-        "log": float(np.sqrt(np.mean(log**2))),
-        "linear": float(np.sqrt(np.mean(lin**2))),
-        "n_cells": len(cells),
-    }
+    """RMSE over cells and channels of the cosine-weighted log and linear metrics (as the fit:
+    :func:`twoscale.fit.evaluation.rmse`)."""
+    from twoscale.fit.evaluation import rmse
+
+    e = rmse(pred, cells)
+    return {"log": e["rmse_log"], "linear": e["rmse_linear"], "n_cells": len(cells)}
 
 
 def rmse_below(res, cells) -> dict:
@@ -350,8 +347,7 @@ def fit_material(
             row.warnings[key] = [str(w) for w in getattr(res, "warnings", None) or []]
         row.rmse_log[key] = res.rmse_log
         row.rmse_lin[key] = res.rmse_linear
-        slog = getattr(res, "rmse_log_scaled", None)
-        row.rmse_slog[key] = math.nan if slog is None else slog
+        row.rmse_slog[key] = math.nan if res.rmse_log_scaled is None else res.rmse_log_scaled
         row.rmse_log_80[key] = rmse_80["log"]
         row.rmse_lin_80[key] = rmse_80["linear"]
         row.converged[key] = res.converged

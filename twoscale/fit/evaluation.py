@@ -38,9 +38,12 @@ def rmse(pred: np.ndarray, cells, log_scale=None) -> dict:
     cos = cells.cos_i[:, None]
     lin = (pred - cells.rho) * cos
     pos = np.maximum(pred, 0.0)
-    log = np.log1p(pos * cos) - np.log1p(cells.rho * cos)
+
+    def log_diff(weight):  # the log metric's residuals with cos θ_i / s as the weight
+        return np.log1p(pos * weight) - np.log1p(cells.rho * weight)
+
     s = cells.log_scale() if log_scale is None else np.asarray(log_scale)
-    slog = np.log1p(pos * cos / s) - np.log1p(cells.rho * cos / s)
+    log, slog = log_diff(cos), log_diff(cos / s)
     return {
         "rmse_linear": float(np.sqrt(np.mean(lin**2))),
         "rmse_log": float(np.sqrt(np.mean(log**2))),

@@ -115,8 +115,8 @@ class FitResult:
         fresnel_selection: how a dielectric coat's Fresnel form was chosen (``fresnel="auto"``):
             the diffraction-off fits' RMS with the exact and with Schlick's form, the winner and
             why (None when not chosen).
-        rmse_80: ``{"log", "linear", "n_cells"}``: the same RMSEs on the valid cells with
-            ``θ_i, θ_o ≤ 80°`` (None when there is none).
+        rmse_80: ``{"log", "scaled_log", "linear", "n_cells"}``: the same RMSEs on the valid
+            cells with ``θ_i, θ_o ≤ 80°`` (None when there is none).
         warnings: one line per problem of an otherwise usable fit (a parameter at a bound, a
             rank-deficient Jacobian, the step limit reached); printed by the CLI.
         albedo_table: the directional-albedo table of the fitted material (the module doc gives
