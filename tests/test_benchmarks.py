@@ -1,6 +1,7 @@
 """Smoke test of the benchmarks (tiny sizes, no timing assertions) and the NumPy reference model."""
 
 import numpy as np
+import pytest
 
 import twoscale
 from benchmarks import numpy_model, run
@@ -33,7 +34,11 @@ def test_numpy_model_agrees_with_brdf():
     np.testing.assert_array_equal(numpy_model.pack(numpy_model.unpack(x)), x)
 
 
+@pytest.mark.slow
 def test_benchmark_scripts_run_on_tiny_sizes(tmp_path):
+    """The runner end to end on tiny sizes (20 s on 2 cores: the slow set; the numbers it
+    measures come from code checked by default: test_numpy_model_agrees_with_brdf and the
+    model's own tests)."""
     assert run.main(["--smoke", "--only", "variants", "--out", str(tmp_path)]) == 0
     text = (tmp_path / "variants.md").read_text()
     assert "specular only" in text and "Load average" in text

@@ -61,9 +61,11 @@ def _channel_last(params, wi, wo, cfg):
 
 @pytest.mark.parametrize(
     "case",
-    # The plastic and the spectral conductor run the same per-pair code as the conductor (each
-    # compiles values and gradients of both compositions, ≈ 30 s on 2 cores): the slow set.
-    [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)],
+    # Each case compiles values and gradients of both compositions (30-45 s on 2 cores): the slow
+    # set. By default brdf's per-pair path is checked against finite differences
+    # (tests/test_model.py::test_check_grads_every_parameter), against the grid path
+    # (tests/test_grid.py::test_brdf_merl_equals_brdf) and in float32 (below).
+    [pytest.param(c, marks=pytest.mark.slow) for c in (0, 1, 2)],
 )
 def test_per_pair_path_equals_channel_last_composition(case):
     params, cfg = CASES[case]

@@ -215,9 +215,44 @@ def test_merl_protocol_and_bound_warning(files, tmp_path, capsys):
     assert res.warnings == []
 
 
+def test_compile_cache_folder_and_switch(tmp_path, monkeypatch):
+    """Where the persistent cache goes (TWOSCALE_CACHE_DIR, else XDG_CACHE_HOME/twoscale/jax)
+    and what enabling it sets; the end-to-end reuse is test_second_run_reuses_the_compilation_cache
+    (two CLI processes, ≈ 30 s on 2 cores: the slow set)."""
+    import jax
+
+    from twoscale.fit import __main__ as cli
+
+    monkeypatch.delenv("TWOSCALE_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cli.cache_dir() == tmp_path / "xdg" / "twoscale" / "jax"
+    monkeypatch.setenv("TWOSCALE_CACHE_DIR", str(tmp_path / "mine"))
+    assert cli.cache_dir() == tmp_path / "mine"
+    before = {
+        k: jax.config.values[k]
+        for k in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    }
+    try:
+        assert cli.enable_compile_cache(lambda msg: None) == tmp_path / "mine"
+        assert (tmp_path / "mine").is_dir()
+        assert jax.config.values["jax_compilation_cache_dir"] == str(tmp_path / "mine")
+        assert jax.config.values["jax_persistent_cache_min_compile_time_secs"] == 0.0
+    finally:
+        for k, v in before.items():
+            jax.config.update(k, v)
+    # A folder that cannot be made: the run goes on without a cache, saying why.
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("TWOSCALE_CACHE_DIR", str(tmp_path / "file" / "sub"))
+    said = []
+    assert cli.enable_compile_cache(said.append) is None
+    assert said and "compilation cache off" in said[0]
+
+
+@pytest.mark.slow
 def test_second_run_reuses_the_compilation_cache(files, tmp_path):
     """Two CLI runs on two files: the first fills the persistent cache, the second adds nothing
-    to it (every compiled function is found there), and --no-compile-cache leaves it alone."""
+    to it (every compiled function is found there), and --no-compile-cache leaves it alone.
+    Slow set; by default test_compile_cache_folder_and_switch checks the folder and settings."""
     cache = tmp_path / "cache"
     other = tmp_path / "other.binary"
     truth = CookTorranceParams(0.3, [0.5, 0.5, 0.5], [0.1, 0.1, 0.1])

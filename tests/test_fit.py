@@ -267,10 +267,14 @@ def test_nested_start_keeps_full_model_at_least_as_good():
     true = TwoScaleParams.conductor(0.1, 1.3, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0))
     data = synthetic(true, ModelConfig(diffraction=False), noise=0.01, seed=5)
     stages = [Stage(4096, 2, 25), Stage(8192, 1, 15)]
-    spec = fit(data, config=ModelConfig(diffraction=False), material="conductor", schedule=stages)
-    full = fit(data, config=ModelConfig(), material="conductor", schedule=stages)
+    # The few starts of --preview (the special case from p = 1, the full model from the nested
+    # start and one point of the grid around it): the same code as the default start set.
+    kw = {"material": "conductor", "schedule": stages, "starts": "few"}
+    spec = fit(data, config=ModelConfig(diffraction=False), **kw)
+    full = fit(data, config=ModelConfig(), **kw)
     labels = [e["start"] for e in full.stages[0]["starts"]]
     assert sum("nested" in label for label in labels) == 1, labels
+    assert len(labels) == 2, labels
     # Every start of the full model comes from the special case's fit (the nested one and the
     # (c, A_spec) grid around it).
     assert all("nested" in label or "from the special case" in label for label in labels)

@@ -115,17 +115,20 @@ def _check_grid_gradients(case):
         np.testing.assert_allclose(projected, b, rtol=1e-9, atol=1e-12 * np.abs(b).max())
 
 
+@pytest.mark.slow
 def test_brdf_grid_gradients_match_brdf():
-    """The plastic with full Q and the apparatus factor (CASES[1])."""
+    """The plastic with full Q and the apparatus factor (CASES[1]). Slow set (45 s on 2 cores):
+    by default the grid path's derivatives are checked in forward mode, the fit's, by
+    test_factorised_normal_equations_match_jacfwd (the same per-bin terms and per-cell total),
+    its values by test_brdf_merl_equals_brdf, and brdf's gradients against finite differences by
+    tests/test_model.py::test_check_grads_every_parameter."""
     _check_grid_gradients(1)
 
 
 @pytest.mark.slow
 def test_brdf_grid_gradients_match_brdf_conductor():
-    """The conductor (CASES[0]). By default its grid-path derivatives are checked in forward mode
-    (the fit's) by test_factorised_normal_equations_match_jacfwd (the same per-bin terms and
-    per-cell total as brdf_grid), and the reverse-mode path by test_brdf_grid_gradients_match_brdf.
-    """
+    """The conductor (CASES[0]); see test_brdf_grid_gradients_match_brdf for what the default
+    set checks instead."""
     _check_grid_gradients(0)
 
 

@@ -128,7 +128,11 @@ def _check_sigma_zero(material):
     assert_finite_tree(g, "gradient at σ_s = 0")
 
 
-@pytest.mark.parametrize("material", ["conductor", "plastic"])
+@pytest.mark.parametrize(
+    # The plastic adds its diffuse body to the same lobes (14 s on 2 cores): the slow set.
+    "material",
+    ["conductor", pytest.param("plastic", marks=pytest.mark.slow)],
+)
 def test_sigma_zero_is_exactly_cook_torrance(material):
     _check_sigma_zero(material)
 
@@ -236,8 +240,12 @@ def test_albedo_quadrature(material, beta, cos_i):
     np.testing.assert_allclose(got, finer, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_albedo_conservation_q_f_and_excess_q_2f(capsys):
     """Energy over a grid of parameters (near-perfect mirror conductor, bright plastic).
+
+    Slow set (33 s on 2 cores): ``albedo``'s quadrature is checked by default by
+    test_albedo_quadrature; this measures the model's energy balance with it.
 
     Conserving: ``Q = F`` with the η²-compressed plastic diffuse layer, for θ_i ≤ 45°
     (cos θ_i ≥ 0.7): albedo ≤ 1. Not conserving, by the model's design, and reported here:
@@ -419,22 +427,35 @@ def test_check_grads_every_parameter_conductor_apparatus():
 
 
 # ------------------------------------------------------------------------------------ transformations
-def test_jit_equals_eager_and_vmap_equals_loop():
+def _transform_case():
     cfg = ModelConfig(material="plastic", q_mode="full")
     wi, wo = _random_dirs(20, 5)
     sets = [
         _params("plastic", beta=b_, sigma_s=s_)
         for b_, s_ in ((0.05, 0.01), (0.3, 0.05), (0.8, 0.0))
     ]
-    # Eager (op by op) on one set: it is the slow part (≈ 10 s per set on 2 cores).
-    with jax.disable_jit():
-        eager = np.asarray(brdf(sets[0], wi, wo, cfg))
+    return cfg, wi, wo, sets
+
+
+def test_vmap_equals_loop():
+    cfg, wi, wo, sets = _transform_case()
     f = jax.jit(lambda p: brdf(p, wi, wo, cfg))
     loop = [np.asarray(f(p)) for p in sets]
-    np.testing.assert_allclose(loop[0], eager, rtol=1e-12)
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)
     vm = np.asarray(jax.vmap(lambda p: brdf(p, wi, wo, cfg))(batch))
     np.testing.assert_allclose(vm, np.stack(loop), rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_jit_equals_eager():
+    """Op by op (≈ 10 s on 2 cores, each operation compiled on its own): the slow set; the
+    convolved lobe's eager path is checked by default in
+    tests/test_convolution.py::test_jit_equals_eager_and_hot_path."""
+    cfg, wi, wo, sets = _transform_case()
+    with jax.disable_jit():
+        eager = np.asarray(brdf(sets[0], wi, wo, cfg))
+    jitted = np.asarray(jax.jit(lambda p: brdf(p, wi, wo, cfg))(sets[0]))
+    np.testing.assert_allclose(jitted, eager, rtol=1e-12)
 
 
 def test_float32_in_float32_out_and_broadcasting():

@@ -118,9 +118,57 @@ def test_choose_fresnel_and_resolve():
     assert not fresnel_choice_applies(dataclasses.replace(EXACT, q_mode="full"))
 
 
+@pytest.mark.parametrize("winner", ["schlick", "exact"])
+def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner):
+    """The driver's ``fresnel="auto"`` path without a solve (the screening stages stubbed with
+    the RMS each form should reach): the plastic's special case is fitted with both forms; when
+    Schlick's fits it better the full model goes on with both forms, each from nested starts of
+    its own special case, else with the exact form alone. The real fits: the slow test below."""
+    from types import SimpleNamespace
+
+    from twoscale.baselines import CookTorranceConfig, CookTorranceParams
+    from twoscale.fit import driver
+    from twoscale.fit.material_type import resolve_configs
+    from twoscale.fit.starts import data_stats
+
+    data = synthetic(
+        CookTorranceParams(0.2, [0.5, 0.5, 0.5], [0.1, 0.1, 0.1]), CookTorranceConfig("ggx")
+    )
+    prep = SimpleNamespace(stats=data_stats(np.asarray(data.values), np.asarray(data.valid)))
+    screened = []
+
+    def screening(prep_, groups, cands, stages, opts, say, choose, warm=None):
+        forms = [groups[c.group].adapter.config.fresnel for c in cands]
+        screened.append(forms)
+        for c, form in zip(cands, forms, strict=True):
+            c.cost = {"schlick": 0.5, "exact": 1.0}[form] if winner == "schlick" else 1.0
+        log = [{"n_cells_used": 4096}]
+        return sorted(cands, key=lambda c: c.cost), log, None, {}
+
+    monkeypatch.setattr(driver, "_run_schedule", screening)
+    settings = driver.FitSettings(
+        starts="few", stages=(Stage(4096, 1, 5), Stage(8192, 1, 5)), fresnel="auto"
+    )
+    configs, groups, cands, selection = driver._make_starts(
+        prep, resolve_configs(None, "plastic"), settings, lambda msg: None
+    )
+    assert len(screened) == 1 and set(screened[0]) == {"exact", "schlick"}
+    assert cands and all(groups[c.group].adapter.config.diffraction for c in cands)
+    special = selection["plastic"]["special_case"]
+    assert special["chosen"] == winner and special["n_cells"] == 4096
+    forms = [c.fresnel for c in configs]
+    assert forms == (["exact", "schlick"] if winner == "schlick" else ["exact"])
+    assert all(c.diffraction and c.material == "plastic" for c in configs)
+    nested = [groups[c.group].adapter.config.fresnel for c in cands if "nested" in c.label]
+    assert sorted(nested) == sorted(forms), [c.label for c in cands]
+
+
+@pytest.mark.slow
 def test_fit_chooses_schlick_for_a_schlick_plastic_and_records_it(tmp_path):
     """``fresnel="auto"``: a plastic made with Schlick's form is fitted with it; the record keeps
-    the comparison and loads back."""
+    the comparison and loads back. Slow set (≈ 60-80 s on 2 cores: four configurations
+    compiled); by default test_fresnel_auto_branches_on_the_special_case runs the driver's
+    branches and test_choose_fresnel_and_resolve the rule."""
     cfg = dataclasses.replace(SCHLICK, apparatus=True)
     true = TwoScaleParams.plastic(
         0.1, 1.2, (1.8, 1.7, 1.6), (0.1, 0.3, 0.5), sigma_s=0.01, b=1.0, c=2.0, e=0.8
