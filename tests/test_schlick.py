@@ -86,7 +86,12 @@ def test_schlick_replaces_the_coat_reflectance_only(diffuse_fresnel):
         np.testing.assert_array_equal(b["diffuse"], a["diffuse"])
 
 
+@pytest.mark.slow
 def test_schlick_gradients_grid_path_and_float32():
+    """Slow set (≈ 22 s on 2 cores): by default Schlick's form is checked by
+    test_schlick_replaces_the_coat_reflectance_only, and the code it feeds (the coat's
+    reflectance in the per-pair and grid paths, float32) by tests/test_model.py and
+    tests/test_grid.py."""
     g = jax.grad(lambda p: twoscale.brdf(p, WI, WO, SCHLICK).sum())(PARAMS)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(g))
     assert float(jnp.abs(g.eta).sum()) > 0.0
