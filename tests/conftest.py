@@ -15,27 +15,6 @@ SHARED = Path(os.environ.get("TWOSCALE_SHARED", Path(__file__).resolve().parents
 SHARED_DATA = SHARED / "data"
 
 
-#: The longest test modules (seconds of compilation and fitting), run first: with the README's
-#: ``-n 2 --dist loadfile`` each file goes to whichever process is free, so starting with the
-#: long ones leaves short ones to even out the end (longest-first scheduling).
-LONG_MODULES = (
-    "test_model.py",
-    "test_fit.py",
-    "test_shadowing.py",
-    "test_convolution.py",
-    "test_grid.py",
-    "test_recovery.py",
-    "test_sampling.py",
-    "test_harmonics.py",
-)
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """Long modules first (:data:`LONG_MODULES`), each module's tests kept together in order."""
-    rank = {name: i for i, name in enumerate(LONG_MODULES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_MODULES)))
-
-
 @pytest.fixture
 def shared_data():
     """Path to ../shared/data; skips the test cleanly when the folder is absent."""
