@@ -464,6 +464,14 @@ def test_type_choice_on_synthetic_materials(material):
     stage = res.stages[res.type_selection["stage"] - 1]
     fitted = min(e["rms"] for e in stage["starts"] if e["start"].startswith(material))
     assert res.type_selection["rms"][material] < fitted
+    # Both types' best fits at the choosing stage are kept (the chosen one's is where the last
+    # stage started from); the other type's can be read back and used.
+    other = {"conductor": "plastic", "plastic": "conductor"}[material]
+    kept = {m: TwoScaleParams.from_dict(d) for m, d in res.type_selection["params"].items()}
+    assert set(kept) == {material, other}
+    assert kept[other].material == other and kept[material].material == material
+    assert res.type_selection["rms"][other] > res.type_selection["rms"][material]
+    assert json.loads(json.dumps(res.type_selection))["params"] == res.type_selection["params"]
 
 
 def test_no_progress_raises(ct_noisy, monkeypatch):

@@ -224,6 +224,9 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 "chosen": winner,
                 "reason": reason,
                 "stage": si + 1,
+                # Each type's best fit at this stage, so the one not chosen is not lost
+                # (TwoScaleParams.from_dict reads it back).
+                "params": {k: v[1].to_dict() for k, v in best.items()},
             }
             say(
                 "material: "

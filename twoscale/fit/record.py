@@ -110,8 +110,10 @@ class FitResult:
             (``σ² (JᵀJ)⁺`` at the solution, mapped by the bijection's Jacobian).
         covariance: how the errors were obtained (rank, rank deficiency, σ², note).
         settings, versions, data: provenance.
-        type_selection: how the material type was chosen (``material="auto"``): each type's RMS,
-            the winner and why.
+        type_selection: how the material type was chosen (``material="auto"``): each type's RMS
+            (``"rms"``) and best parameters on that stage (``"params"``, ``to_dict()`` form: the
+            type not chosen can be read back with ``TwoScaleParams.from_dict``), the winner and
+            why.
         fresnel_selection: how a dielectric coat's Fresnel form was chosen (``fresnel="auto"``):
             the diffraction-off fits' RMS with the exact and with Schlick's form, the winner and
             why (None when not chosen).
@@ -258,6 +260,14 @@ class FitResult:
             f"{'converged' if self.converged else 'NOT converged'} ({self.status or 'ok'}), "
             f"{self.steps} steps, {self.wall_time:.1f} s",
         ]
+        ts = self.type_selection
+        if ts and len(ts.get("rms", {})) > 1:
+            others = ", ".join(f"{m} {r:.4g}" for m, r in ts["rms"].items() if m != ts["chosen"])
+            kept = " (its parameters: type_selection in params.json)" if "params" in ts else ""
+            lines.append(
+                f"type {ts['chosen']}: {ts['metric']} RMS {ts['rms'][ts['chosen']]:.4g} against "
+                f"{others} on stage {ts['stage']}, {ts['reason']}{kept}"
+            )
         params = self.params_dict if self.params_dict is not None else self.params.to_dict()
         for name, value in params.items():
             if value is None:
