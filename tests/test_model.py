@@ -316,9 +316,9 @@ def _dirs(cases, dtype):
 
 
 def _extreme_batch(material):
-    """Every corner of β ∈ {1e-3, 1}, p ∈ {0.2, 5}, c ∈ {1.01, 5}, σ_s ∈ {0, 1}, b ∈ {0.01, 100}."""
+    """Every corner of β ∈ {1e-3, 1}, p ∈ {0.2, 5}, c ∈ {1.01, 5}, σ_s ∈ {0, 1}, b ∈ {0.01, 350}."""
     corners = list(
-        itertools.product((1e-3, 1.0), (0.2, 5.0), (1.01, 5.0), (0.0, 1.0), (0.01, 100.0))
+        itertools.product((1e-3, 1.0), (0.2, 5.0), (1.01, 5.0), (0.0, 1.0), (0.01, 350.0))
     )
     sets = []
     for beta, p, c, s, b in corners:

@@ -7,7 +7,7 @@ field      symbol  unit  valid range (= range of the unconstrained   paper
 beta       β       —     [1e-3, 1]                                   EPD roughness, Eq. 34-35
 p          p       —     [0.2, 5]                                    EPD shape, Eq. 34-35
 sigma_s    σ_s     µm    [0, 1]                                      nano-scale RMS height, Eq. 16, 25
-b          b       µm    [0.01, 100]                                 PSD correlation length, Eq. 16
+b          b       µm    [0.01, 350]                                 PSD correlation length, Eq. 16
 c          c       —     [1.01, 5]                                   PSD exponent, Eq. 16
 eta        η       —     conductor [0.01, 6]; dielectric [1, 4]      index, real part (§3.1), per channel
 k          k       —     [0, 10]                                     extinction (conductors), per channel
@@ -96,7 +96,11 @@ _BOUNDS = {
     "beta": Bound(1e-3, 1.0, "log"),
     "p": Bound(0.2, 5.0, "log"),
     "sigma_s": Bound(0.0, 1.0),
-    "b": Bound(0.01, 100.0, "log"),
+    # b's upper end: the convolution table covers u = (b/λ) cos θ_d ≤ 1000, so b ≤ 350 µm keeps
+    # every wavelength from 0.35 µm up inside it (the spectral default starts at 0.38 µm). On the
+    # MERL stand-ins 15 of 60 fits ended at the earlier end, 100 µm: the highlights of phenolics,
+    # plastics and chrome want a diffraction lobe as narrow as the EPD's (docs/model.md §4).
+    "b": Bound(0.01, 350.0, "log"),
     "c": Bound(1.01, 5.0, "log", offset=1.0),
     "k": Bound(0.0, 10.0),
     "rho_d": Bound(0.0, 1.0),
