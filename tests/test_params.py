@@ -154,7 +154,7 @@ def test_unconstrained_round_trip(make):
 
 
 def test_bounds_map_to_finite_unconstrained_values():
-    p = TwoScaleParams.conductor(1e-3, 5.0, [0.01, 6.0, 1.0], [0.0, 10.0, 1.0], 0.0, 100.0, 1.01)
+    p = TwoScaleParams.conductor(1e-3, 5.0, [0.01, 6.0, 1.0], [0.0, 10.0, 1.0], 0.0, 350.0, 1.01)
     u = p.to_unconstrained()
     for name, value in u.fields().items():
         assert np.all(np.isfinite(value)) and np.all(np.abs(value) <= 40.0), name

@@ -253,10 +253,10 @@ def test_pdf_zero_below_horizon():
 def _extreme_params():
     """Conductors and plastics at the corners of the parameter ranges (twoscale.params)."""
     cond = [
-        _conductor(beta=1e-3, p=0.2, sigma_s=1.0, b=100.0, c=1.01, eta=(0.01,) * 3, k=(10.0,) * 3),
+        _conductor(beta=1e-3, p=0.2, sigma_s=1.0, b=350.0, c=1.01, eta=(0.01,) * 3, k=(10.0,) * 3),
         _conductor(beta=1.0, p=5.0, sigma_s=0.0, b=0.01, c=5.0, eta=(6.0,) * 3, k=(0.0,) * 3),
         _conductor(beta=1e-3, p=5.0, sigma_s=1.0, b=0.01, c=5.0, eta=(0.01,) * 3, k=(0.0,) * 3),
-        _conductor(beta=1.0, p=0.2, sigma_s=1.0, b=100.0, c=1.01, eta=(6.0,) * 3, k=(10.0,) * 3),
+        _conductor(beta=1.0, p=0.2, sigma_s=1.0, b=350.0, c=1.01, eta=(6.0,) * 3, k=(10.0,) * 3),
     ]
     plas = [
         _plastic(beta=1e-3, p=0.2, eta=(1.0,) * 3, rho_d=(0.0,) * 3, sigma_s=1.0),
