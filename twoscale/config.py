@@ -10,6 +10,14 @@ from dataclasses import dataclass, field
 
 from twoscale.spectral import RGB_WAVELENGTHS
 
+#: Shortest and longest wavelength (µm) a configuration may use. 0.35 µm: b's upper end, 350 µm,
+#: keeps u = (b/λ) cos θ_d inside the convolution table (u ≤ 1000) only from there on; beyond
+#: its u axis the table has nothing to give (the lobe held at u = 1000 is up to 2.5× the exact
+#: lobe of u = 1500, docs/model.md §4). The visible range, the spectral default (from 0.38 µm)
+#: and RGB (0.444–0.645 µm) are inside.
+MIN_WAVELENGTH = 0.35
+MAX_WAVELENGTH = 2.0
+
 __all__ = ["ModelConfig", "MATERIALS", "PARAM_ORDER"]
 
 MATERIALS = ("conductor", "plastic", "subsurface")
@@ -128,9 +136,11 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.wavelengths = {self.wavelengths!r}: expected a sequence of floats (µm)"
             ) from err
-        if not wl or not all(0.2 <= w <= 2.0 for w in wl):
+        if not wl or not all(MIN_WAVELENGTH <= w <= MAX_WAVELENGTH for w in wl):
             raise ValueError(
-                f"ModelConfig.wavelengths = {wl}: expected one or more wavelengths in µm within [0.2, 2]"
+                f"ModelConfig.wavelengths = {wl}: expected one or more wavelengths in µm within "
+                f"[{MIN_WAVELENGTH:g}, {MAX_WAVELENGTH:g}] (the convolution table's u = (b/λ) "
+                f"cos θ_d ends at 1000, which b's range up to 350 µm reaches at 0.35 µm)"
             )
         if wl != tuple(RGB_WAVELENGTHS) and any(b <= a for a, b in zip(wl, wl[1:], strict=False)):
             raise ValueError(

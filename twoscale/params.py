@@ -98,10 +98,10 @@ _BOUNDS = {
     "sigma_s": Bound(0.0, 1.0),
     # b's upper end: the convolution table covers u = (b/λ) cos θ_d ≤ 1000, so b ≤ 350 µm keeps
     # every wavelength from 0.35 µm up inside it (RGB: 0.444 µm and up; the spectral default
-    # starts at 0.38 µm). ModelConfig accepts wavelengths down to 0.2 µm: there, b above 1000 λ
-    # reads the table beyond its u axis (not guarded). On the MERL stand-ins 15 of 60 fits ended
-    # at the earlier end, 100 µm: the highlights of phenolics, plastics and chrome want a
-    # diffraction lobe as narrow as the EPD's (docs/model.md §4).
+    # starts at 0.38 µm); ModelConfig accepts no shorter one (config.MIN_WAVELENGTH). On the
+    # MERL stand-ins 15 of 60 fits ended at the earlier end, 100 µm: the highlights of
+    # phenolics, plastics and chrome want a diffraction lobe as narrow as the EPD's
+    # (docs/model.md §4).
     "b": Bound(0.01, 350.0, "log"),
     "c": Bound(1.01, 5.0, "log", offset=1.0),
     "k": Bound(0.0, 10.0),
