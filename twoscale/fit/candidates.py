@@ -112,6 +112,46 @@ def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str,
     return out
 
 
+#: The parameters every material type shares: the surface's geometry (EPD and PSD) and MERL's
+#: apparatus exponent. A type's own parameters (a conductor's η and k, a plastic's η and ρ_d)
+#: set the lobes' amplitudes and colour, which a solver moves easily; the geometry sets the
+#: basin (:func:`cross_seed`).
+SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e")
+
+
+def cross_seed(src: Candidate, g_src: Group, dst: Candidate, g_dst: Group) -> Candidate | None:
+    """A start for ``dst``'s type with the shared parameters (:data:`SHARED_FIELDS`) of ``src``'s
+    fit (another type's) and ``dst``'s own type parameters; None when nothing would change.
+
+    Why: the two types' full models start from their own special cases, and one type's starts
+    can all miss the basin the other type found (tungsten-carbide on 2026-12-04: every conductor
+    start ended near 0.446 on the first stage, the plastic's narrow-lobe start at 0.327 with
+    almost the same geometry a conductor can take). A type's fit is compared with the other's
+    only after both have searched the same basins. Fixed parameters stay as they are (they are
+    frozen in ``g_dst``).
+    """
+    from twoscale.fit.residuals import Problem
+
+    p_src = Problem(g_src.adapter, g_src.layout, "log").params(src.y, g_src.frozen)
+    p_dst = Problem(g_dst.adapter, g_dst.layout, "log").params(dst.y, g_dst.frozen)
+    free = g_dst.spec
+    changes = {}
+    for name in SHARED_FIELDS:
+        a, b = getattr(p_src, name, None), getattr(p_dst, name, None)
+        if a is None or b is None or getattr(free, name) is not True:
+            continue
+        changes[name] = jnp.broadcast_to(jnp.asarray(a, jnp.result_type(b)), jnp.shape(b))
+    if not changes:
+        return None
+    u = g_dst.adapter.to_unconstrained(p_dst.replace(**changes))
+    y = g_dst.layout.ravel(eqx.partition(u, g_dst.spec)[0])
+    if np.allclose(np.asarray(y), np.asarray(dst.y), rtol=0.0, atol=1e-9):  # round-off only
+        return None
+    return Candidate(
+        f"{_kind(g_dst.adapter.config)} with the geometry of [{src.label}]", dst.group, y
+    )
+
+
 def apply_fixed(params, fixed: dict, adapter):
     """Set the fixed fields (physical values) and return (params, spec of free leaves)."""
     spec = jax.tree_util.tree_map(lambda _: True, params)

@@ -23,6 +23,7 @@ from twoscale.fit import solver as _solver
 from twoscale.fit.adapters import adapter_for
 from twoscale.fit.candidates import (
     NESTED_GRID,
+    cross_seed,
     keep_best,
     make_candidates,
     nested_starts,
@@ -157,6 +158,30 @@ def _twin_finder(cand, done):
     return twin
 
 
+def _cross_seeds(kept, groups, say) -> list:
+    """After the first stage: each material type whose best start is behind the best of all
+    gets one more start, its own type parameters with the leader's geometry
+    (:func:`~twoscale.fit.candidates.cross_seed`), refined with the others from the next stage
+    on, so the type choice compares fits that searched the same basin."""
+    best = {}  # material -> its best kept candidate
+    for c in kept:
+        mat = groups[c.group].adapter.material
+        if math.isfinite(c.cost) and (mat not in best or c.cost < best[mat].cost):
+            best[mat] = c
+    if len(best) < 2:
+        return []
+    top = min(best.values(), key=lambda c: c.cost)
+    out = []
+    for c in best.values():
+        if c is top:
+            continue
+        seed = cross_seed(top, groups[top.group], c, groups[c.group])
+        if seed is not None:
+            say(f"stage 1: [{seed.label}] added (rms {c.cost:.5g} against {top.cost:.5g})")
+            out.append(seed)
+    return out
+
+
 def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: bool, warm=None):
     """Fit every candidate through the stages; returns ``(candidates best first, stage log,
     type selection, Fresnel choice)``. The Fresnel form of a type fitted with both, then the
@@ -202,6 +227,8 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
             if e["start"] in duplicates:
                 e["duplicate_of"] = duplicates[e["start"]]
                 say(f"stage {si + 1}: [{e['start']}] reached [{e['duplicate_of']}]: dropped")
+        if choose and si == 0 and si < len(stages) - 2:
+            kept = kept + _cross_seeds(kept, groups, say)
         if choose and len(groups) > 1 and (si == len(stages) - 2 or len(stages) == 1):
             chosen, fresnel_choice = _choose_groups(kept, groups, n_cells, si + 1, say)
             best = {}

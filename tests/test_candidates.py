@@ -1,0 +1,76 @@
+"""Cross-seeding between material types: a type whose best start is behind after the first stage
+gets a start with the leader's geometry and its own type parameters
+(:func:`twoscale.fit.candidates.cross_seed`, :func:`twoscale.fit.driver._cross_seeds`)."""
+
+import dataclasses
+import math
+
+import numpy as np
+
+from twoscale import ModelConfig, TwoScaleParams
+from twoscale.fit.candidates import SHARED_FIELDS, cross_seed, make_candidates
+from twoscale.fit.driver import _cross_seeds
+from twoscale.fit.residuals import Problem
+
+CONDUCTOR = TwoScaleParams.conductor(
+    0.05, 0.8, (1.2, 1.3, 1.4), (2.0, 2.5, 3.0), sigma_s=0.05, b=2.0, c=1.5, e=0.7
+)
+PLASTIC = TwoScaleParams.plastic(
+    0.3, 2.0, (1.5, 1.6, 1.7), (0.1, 0.2, 0.3), sigma_s=0.2, b=30.0, c=3.0, e=1.5
+)
+
+
+def _setup(fixed=None):
+    cfg = ModelConfig(apparatus=True)
+    configs = [dataclasses.replace(cfg, material=m) for m in ("conductor", "plastic")]
+    return make_candidates(configs, [[("a", CONDUCTOR)], [("b", PLASTIC)]], fixed or {})
+
+
+def _params(cand, group):
+    return Problem(group.adapter, group.layout, "log").params(cand.y, group.frozen)
+
+
+def test_cross_seed_takes_the_geometry_and_keeps_the_type_parameters():
+    groups, (cc, pc) = _setup()
+    seed = cross_seed(pc, groups[1], cc, groups[0])
+    assert seed.group == cc.group and math.isinf(seed.cost)
+    assert seed.label == "conductor with the geometry of [plastic b]"
+    got = _params(seed, groups[0])
+    assert got.material == "conductor" and got.rho_d is None
+    for name in SHARED_FIELDS:
+        np.testing.assert_allclose(getattr(got, name), getattr(PLASTIC, name), rtol=1e-9)
+    for name in ("eta", "k"):
+        np.testing.assert_allclose(getattr(got, name), getattr(CONDUCTOR, name), rtol=1e-9)
+
+    back = _params(cross_seed(cc, groups[0], pc, groups[1]), groups[1])
+    assert back.material == "plastic" and back.k is None
+    for name in SHARED_FIELDS:
+        np.testing.assert_allclose(getattr(back, name), getattr(CONDUCTOR, name), rtol=1e-9)
+    for name in ("eta", "rho_d"):
+        np.testing.assert_allclose(getattr(back, name), getattr(PLASTIC, name), rtol=1e-9)
+    # Nothing to change (the same geometry already): no start.
+    assert cross_seed(cc, groups[0], cc, groups[0]) is None
+
+
+def test_cross_seed_leaves_fixed_parameters_alone():
+    groups, (cc, pc) = _setup({"p": 1.0, "b": 5.0})
+    got = _params(cross_seed(pc, groups[1], cc, groups[0]), groups[0])
+    assert float(got.p) == 1.0 and abs(float(got.b) - 5.0) < 1e-12
+    np.testing.assert_allclose(got.beta, PLASTIC.beta, rtol=1e-9)
+    np.testing.assert_allclose(got.c, PLASTIC.c, rtol=1e-9)
+
+
+def test_cross_seeds_go_to_the_types_behind_only():
+    groups, (cc, pc) = _setup()
+    said = []
+    cc.cost, pc.cost = 0.3, 0.2
+    (seed,) = _cross_seeds([cc, pc], groups, said.append)
+    assert seed.group == cc.group and "geometry of [plastic b]" in seed.label
+    assert "0.3 against 0.2" in said[-1]
+    cc.cost = 0.1
+    (seed,) = _cross_seeds([cc, pc], groups, said.append)
+    assert seed.group == pc.group and "geometry of [conductor a]" in seed.label
+    # One type (or no finite fit of the other): nothing to seed.
+    assert _cross_seeds([cc], groups, said.append) == []
+    pc.cost = math.inf
+    assert _cross_seeds([cc, pc], groups, said.append) == []
