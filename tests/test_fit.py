@@ -399,9 +399,10 @@ def test_choose_type_tie_goes_to_the_physical_type():
 
 
 def test_choose_type_a_conductor_without_the_measured_body_loses():
-    """A conductor fit with the lower RMS that leaves out a diffuse body carrying much of the
-    material's light (it would render black with a highlight) loses to the plastic; the faint
-    scatter under a metal's highlight does not count."""
+    """A conductor fit with the lower RMS loses to the plastic on a material whose diffuse body
+    carries much of its light, whether it leaves the body out (it would render black with a
+    highlight) or makes it with its lobes (a conductor has no diffuse layer); the faint scatter
+    under a metal's highlight does not count."""
     from twoscale import TwoScaleParams
     from twoscale.fit.material_type import choose_type
 
@@ -413,8 +414,14 @@ def test_choose_type_a_conductor_without_the_measured_body_loses():
     body = {"measured": red, "conductor": red * 1e-6, "plastic": red * 0.8, "albedo": albedo}
     chosen, reason = choose_type(best, body)
     assert chosen == "plastic" and "diffuse body" in reason
-    # The conductor reproduces the floor: the lower RMS wins.
-    assert choose_type(best, {**body, "conductor": red * 0.9})[0] == "conductor"
+    # The conductor reproduces the floor with its lobes: still no diffuse layer, the plastic wins
+    # when its own layer reproduces the body...
+    chosen, reason = choose_type(best, {**body, "conductor": red * 0.9})
+    assert chosen == "plastic" and "no diffuse layer" in reason and "90%" in reason
+    # ...and not when it does not (then the lower RMS).
+    assert choose_type(best, {**body, "conductor": red * 0.9, "plastic": red * 0.3})[0] == (
+        "conductor"
+    )
     # The same floor under a bright highlight (a metal reflecting 60 % of the light): not a body.
     assert choose_type(best, {**body, "albedo": np.full(3, 0.6)})[0] == "conductor"
     # The plastic misses the body even more than the conductor: no reason to switch.

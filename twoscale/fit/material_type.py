@@ -160,10 +160,14 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's fit, and the
     data's bihemispherical albedo.
 
-    A conductor fit that leaves a measured diffuse body out (the body's albedo ``π ρ_floor`` at
-    least :data:`BODY_SHARE` of the data's albedo, the fit's floor below
-    :data:`MISSING_BODY` of it, and the plastic fit's closer) loses to the plastic whatever its
-    RMS: it would render black with a highlight.
+    A measured diffuse body that carries much of the light (its albedo ``π ρ_floor`` at least
+    :data:`BODY_SHARE` of the data's albedo) makes the plastic win whatever the RMS, when the
+    conductor fit leaves it out (its floor below :data:`MISSING_BODY` of the measured one and
+    the plastic's closer: it would render black with a highlight), and when the plastic fit
+    reproduces it (its floor at least :data:`MISSING_BODY` of the measured one): a conductor
+    has no diffuse layer, and its fit of such a material makes the body with its lobes (on the
+    60 stand-ins of 2026-12-04: a wide EPD, β ≈ 0.6, or a flat diffraction lobe, σ_s ≈ 1 µm
+    and b ≈ 0.01–0.05 µm, on every material with such a body), which renders a rough metal.
     Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
     plastic fit without a diffuse layer (``ρ_d < METAL_RHO_D`` in every channel) is a metal in
     disguise (conductor wins), and otherwise a conductor fit with ``k < DIELECTRIC_K`` in every
@@ -182,16 +186,22 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
         frac_p = float(np.asarray(body["plastic"]) @ w) / max(measured, 1e-300)
         body_albedo = math.pi * measured
         share = body_albedo / max(float(np.asarray(body["albedo"]) @ w), 1e-300)
-        if (
-            share >= BODY_SHARE
-            and frac_c < MISSING_BODY
-            and abs(math.log(max(frac_p, 1e-300))) < abs(math.log(max(frac_c, 1e-300)))
-        ):
-            return "plastic", (
-                f"the conductor fit leaves the measured diffuse body out (its floor is "
-                f"{frac_c:.0%} of the measured one, whose albedo π ρ = {body_albedo:.3g} is "
-                f"{share:.0%} of the measured albedo; plastic: {frac_p:.0%})"
-            )
+        if share >= BODY_SHARE:
+            if frac_c < MISSING_BODY and abs(math.log(max(frac_p, 1e-300))) < abs(
+                math.log(max(frac_c, 1e-300))
+            ):
+                return "plastic", (
+                    f"the conductor fit leaves the measured diffuse body out (its floor is "
+                    f"{frac_c:.0%} of the measured one, whose albedo π ρ = {body_albedo:.3g} "
+                    f"is {share:.0%} of the measured albedo; plastic: {frac_p:.0%})"
+                )
+            if frac_p >= MISSING_BODY:
+                return "plastic", (
+                    f"the measured diffuse body carries {share:.0%} of the light (albedo π ρ = "
+                    f"{body_albedo:.3g}): a conductor has no diffuse layer, its fit makes the "
+                    f"floor ({frac_c:.0%} of the measured one) with its lobes; the plastic's "
+                    f"diffuse layer gives {frac_p:.0%}"
+                )
     if abs(rms_c - rms_p) > TYPE_TIE_RTOL * min(rms_c, rms_p):
         return winner, "lower RMS"
     k = np.asarray(p_c.k)
