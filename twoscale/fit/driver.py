@@ -92,15 +92,19 @@ class _Prepared:
 TYPE_METRIC = {"scaled-log": "log"}
 
 
-def _type_rms(cand, group, metric: str, buffer, n_active: int, n_cells: int) -> float:
+def _type_rms(cand, group, opts, buffer, n_active: int, n_cells: int) -> float:
     """A type's best start's RMS as :func:`choose_type` compares it: its cost, or on
-    :data:`TYPE_METRIC`'s metric over the same cells."""
-    other = TYPE_METRIC.get(metric)
-    if other is None:
+    :data:`TYPE_METRIC`'s metric over the same cells.
+
+    The plain log metric is the scaled one with every scale 1, so it is computed by the
+    group's solve, compiled already, on the buffer with ``s = 1`` (one step, which only
+    evaluates its start): no function is compiled for it (that cost ≈ 1 s per fit).
+    """
+    if opts.metric != "scaled-log":  # the only metric TYPE_METRIC maps (to "log")
         return cand.cost
-    problem = Problem(group.adapter, group.layout, other)
-    rr = float(_solver.jit_sum_squares(problem, cand.y, group.frozen, buffer, jnp.int32(n_active)))
-    return math.sqrt(rr / (n_cells * group.adapter.config.n_channels))
+    m = n_cells * group.adapter.config.n_channels
+    unscaled = {**buffer, "s": jnp.ones_like(buffer["s"])}
+    return math.sqrt(_solver.start_cost(cand.y, group, unscaled, n_active, m, opts) / m)
 
 
 def _prepare(data, max_theta_deg, seed) -> _Prepared:
@@ -236,7 +240,7 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
                 c = min((c for c in kept if c.group == gi), key=lambda c: c.cost)
                 g = groups[gi]
                 best[mat] = (
-                    _type_rms(c, g, opts.metric, prep.buffer, n_active, n_cells),
+                    _type_rms(c, g, opts, prep.buffer, n_active, n_cells),
                     Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen),
                 )
             by_material = {mat: groups[gi] for mat, gi in chosen.items()}

@@ -276,6 +276,17 @@ class Warmup:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
+def start_cost(y, g: Group, data, n_active: int, m: int, opts) -> float:
+    """``rᵀr`` at ``y`` on the active chunks of ``data``: the group's compiled solve, one step
+    (which only evaluates its start), so no other function is compiled for it."""
+    n = g.layout.size
+    if n == 0:
+        problem = Problem(g.adapter, g.layout, opts.metric)
+        return float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
+    *_, rr, _ = _run_solve(g, y, data, n_active, 1, m, np.ones(n), opts)
+    return float(rr)
+
+
 def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts, twin=None):
     """Run the solver on one candidate for one stage, in rounds (see :class:`Stage`).
 
