@@ -46,8 +46,11 @@ DEFAULT_SCHEDULE = (
 )
 
 
-#: Preview: the same without the last refinement (errors still reported on all valid cells).
-PREVIEW_SCHEDULE = DEFAULT_SCHEDULE[:2]
+#: Preview: the same without the last refinement (errors still reported on all valid cells),
+#: and only the best start per material type on from the first stage: the second start nearly
+#: always reached the same minimum (on 9 stand-ins, 2026-12-04, the same type and log RMSE to
+#: 5 digits with one as with two; in process, warm, up to 2.3 s less per fit, median 0.9 s).
+PREVIEW_SCHEDULE = (dataclasses.replace(DEFAULT_SCHEDULE[0], keep=1), DEFAULT_SCHEDULE[1])
 
 
 #: Full: the last refinement on every fitted cell.
