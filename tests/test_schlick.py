@@ -123,12 +123,14 @@ def test_choose_fresnel_and_resolve():
     assert not fresnel_choice_applies(dataclasses.replace(EXACT, q_mode="full"))
 
 
+@pytest.mark.parametrize("starts", ["default", "few"])
 @pytest.mark.parametrize("winner", ["schlick", "exact"])
-def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner):
+def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner, starts):
     """The driver's ``fresnel="auto"`` path without a solve (the screening stages stubbed with
     the RMS each form should reach): the plastic's special case is fitted with both forms; when
     Schlick's fits it better the full model goes on with both forms, each from nested starts of
-    its own special case, else with the exact form alone. The real fits: the slow test below."""
+    its own special case (with ``starts="few"``, --preview: with Schlick's alone, the special
+    case's choice), else with the exact form alone. The real fits: the slow test below."""
     from types import SimpleNamespace
 
     from twoscale.baselines import CookTorranceConfig, CookTorranceParams
@@ -152,7 +154,7 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner):
 
     monkeypatch.setattr(driver, "_run_schedule", screening)
     settings = driver.FitSettings(
-        starts="few", stages=(Stage(4096, 1, 5), Stage(8192, 1, 5)), fresnel="auto"
+        starts=starts, stages=(Stage(4096, 1, 5), Stage(8192, 1, 5)), fresnel="auto"
     )
     configs, groups, cands, selection = driver._make_starts(
         prep, resolve_configs(None, "plastic"), settings, lambda msg: None
@@ -162,7 +164,13 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner):
     special = selection["plastic"]["special_case"]
     assert special["chosen"] == winner and special["n_cells"] == 4096
     forms = [c.fresnel for c in configs]
-    assert forms == (["exact", "schlick"] if winner == "schlick" else ["exact"])
+    if winner == "exact":
+        assert forms == ["exact"]
+    elif starts == "few":
+        assert forms == ["schlick"] and selection["plastic"]["chosen"] == "schlick"
+        assert "special case" in selection["plastic"]["reason"]
+    else:
+        assert forms == ["exact", "schlick"]
     assert all(c.diffraction and c.material == "plastic" for c in configs)
     nested = [groups[c.group].adapter.config.fresnel for c in cands if "nested" in c.label]
     assert sorted(nested) == sorted(forms), [c.label for c in cands]
@@ -171,21 +179,21 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner):
 @pytest.mark.slow
 def test_fit_chooses_schlick_for_a_schlick_plastic_and_records_it(tmp_path):
     """``fresnel="auto"``: a plastic made with Schlick's form is fitted with it; the record keeps
-    the comparison and loads back. Slow set (≈ 60-80 s on 2 cores: four configurations
-    compiled); by default test_fresnel_auto_branches_on_the_special_case runs the driver's
-    branches and test_choose_fresnel_and_resolve the rule."""
+    the comparison and loads back. Slow set (four configurations compiled, the default starts:
+    the full model's comparison of the two forms, which starts="few" skips); by default
+    test_fresnel_auto_branches_on_the_special_case runs the driver's branches and
+    test_choose_fresnel_and_resolve the rule."""
     cfg = dataclasses.replace(SCHLICK, apparatus=True)
     true = TwoScaleParams.plastic(
         0.1, 1.2, (1.8, 1.7, 1.6), (0.1, 0.3, 0.5), sigma_s=0.01, b=1.0, c=2.0, e=0.8
     )
     data = synthetic(true, cfg, noise=0.01, seed=3)
     stages = [Stage(4096, 1, 30), Stage(8192, 1, 10)]
-    res = fit(  # the few starts of --preview: the choice is the same code for any start set
+    res = fit(
         data,
         config=dataclasses.replace(EXACT, apparatus=True),
         fresnel="auto",
         schedule=stages,
-        starts="few",
     )
     sel = res.fresnel_selection["plastic"]
     # The special case favours Schlick's form, so the full model is fitted with both forms and

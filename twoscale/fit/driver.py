@@ -442,7 +442,15 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 "reason": "Schlick's form did not fit the diffraction-off special case better",
             }
             say(f"{configs[gi].material} coat's Fresnel form, special case: {form} ({reason})")
-            if form == "schlick":  # both forms go on; the full model's RMS decides
+            if form == "schlick" and few:
+                # starts="few" (--preview): the special case's choice, one full model per type.
+                configs[gi] = dataclasses.replace(configs[gi], fresnel="schlick")
+                source[gi] = ti
+                selection[configs[gi].material].update(
+                    chosen="schlick",
+                    reason="starts='few': the diffraction-off special case's choice",
+                )
+            elif form == "schlick":  # both forms go on; the full model's RMS decides
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
@@ -563,8 +571,9 @@ def fit(
         fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
         starts: ``"default"`` (placed from the data), ``"few"`` (a subset of those: the
             special case from p = 1 only, the full model from the nested start and one strong,
-            narrow diffraction lobe; the CLI's ``--preview``) or a list of parameter objects
-            (needs a single material type).
+            narrow diffraction lobe, and with ``fresnel="auto"`` the full model with the
+            Fresnel form its special case chose only; the CLI's ``--preview``) or a list of
+            parameter objects (needs a single material type).
         schedule: ``"default"``, ``"preview"`` (no last refinement), ``"full"`` (the last
             refinement on every fitted cell) or a list of :class:`Stage`.
             After each stage the best ``keep`` *distinct* solutions go on: a start that ended
