@@ -436,20 +436,19 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 "reason": reason,
                 "n_cells": sub_log[-1]["n_cells_used"],
             }
+            # starts="few" (--preview): the special case's choice, one full model per type.
+            preview = form == "schlick" and few
             selection[configs[gi].material] = {
                 "special_case": special,
-                "chosen": "exact",
-                "reason": "Schlick's form did not fit the diffraction-off special case better",
+                "chosen": "schlick" if preview else "exact",
+                "reason": "starts='few': the diffraction-off special case's choice"
+                if preview
+                else "Schlick's form did not fit the diffraction-off special case better",
             }
             say(f"{configs[gi].material} coat's Fresnel form, special case: {form} ({reason})")
-            if form == "schlick" and few:
-                # starts="few" (--preview): the special case's choice, one full model per type.
+            if preview:
                 configs[gi] = dataclasses.replace(configs[gi], fresnel="schlick")
                 source[gi] = ti
-                selection[configs[gi].material].update(
-                    chosen="schlick",
-                    reason="starts='few': the diffraction-off special case's choice",
-                )
             elif form == "schlick":  # both forms go on; the full model's RMS decides
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])

@@ -298,7 +298,6 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     stops there (``cand.twin`` = that label): it would only have gone on into the same minimum.
     """
     cand.twin = None
-    problem = Problem(g.adapter, g.layout, opts.metric)
     n = g.layout.size
 
     def run(y0, cap, scale):
@@ -306,7 +305,7 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
 
     y = cand.y
     if n == 0:
-        rr = float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
+        rr = start_cost(y, g, data, n_active, m, opts)
         return y, rr, np.zeros((0, 0)), 0, True, "every parameter fixed"
     # A solve of one step only linearises at y: rᵀr there (each round's reference, for the stall
     # rule; a round then starts where the last one ended) and JᵀJ for the scales (Marquardt's
