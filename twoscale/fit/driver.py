@@ -387,26 +387,34 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
         sub_groups, sub_cands = make_candidates(
             spec_cfgs, [data_starts(c) for c in spec_cfgs], sub_fixed
         )
+        # With starts="few" a dielectric coat's full model takes its special case's Fresnel
+        # form alone: its solve is compiled once that form is known, not both forms' now.
+        pending = {gi for gi in twins if few}
+
+        def warm_full(indices):
+            full = [(configs[gi], adapter_for(configs[gi]).starts(prep.stats)) for gi in indices]
+            full = [(cfg, sl[:1]) for cfg, sl in full if sl]
+            if not full:
+                return
+            f_groups, f_cands = make_candidates(
+                [cfg for cfg, _ in full], [sl for _, sl in full], settings.fixed
+            )
+            for c in f_cands:
+                warm.submit(f_groups[c.group], c.y)
+            # The evaluation on the MERL grid that the type choice and the record use.
+            for gi, g in enumerate(f_groups):
+                c = next(c for c in f_cands if c.group == gi)
+                p0 = Problem(g.adapter, g.layout, settings.metric).params(c.y, g.frozen)
+                warm.submit_call(
+                    ("grid", g.adapter.config), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
+                )
+
         if warm is not None:
             # The special cases' solves first (in order of use), then the full models' (their
             # layouts do not depend on the start values): compiled while the special cases fit.
             for c in sub_cands:
                 warm.submit(sub_groups[c.group], c.y)
-            full = [(cfg, adapter_for(cfg).starts(prep.stats)) for cfg in configs]
-            full = [(cfg, sl[:1]) for cfg, sl in full if sl]
-            if full:
-                f_groups, f_cands = make_candidates(
-                    [cfg for cfg, _ in full], [sl for _, sl in full], settings.fixed
-                )
-                for c in f_cands:
-                    warm.submit(f_groups[c.group], c.y)
-                # The evaluation on the MERL grid that the type choice and the record use.
-                for gi, g in enumerate(f_groups):
-                    c = next(c for c in f_cands if c.group == gi)
-                    p0 = Problem(g.adapter, g.layout, settings.metric).params(c.y, g.frozen)
-                    warm.submit_call(
-                        ("grid", g.adapter.config), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
-                    )
+            warm_full([gi for gi in range(len(configs)) if gi not in pending])
         # The screening stages: every stage but the last, where a single candidate of the
         # chosen type is refined (the full model refines its own solution there).
         sub_stages = settings.stages[:-1]
@@ -453,6 +461,8 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
+        if warm is not None and pending:
+            warm_full(sorted(pending))
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
                 continue
