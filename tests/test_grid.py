@@ -164,13 +164,25 @@ def conductor_data():
     return synthetic(CONDUCTOR, twoscale.ModelConfig(), noise=0.01, seed=3)
 
 
-def test_factorised_normal_equations_match_jacfwd(conductor_data):
-    """The fit's per-bin factorisation (terms once per pass, gathered per pair) gives the
-    normal equations of jacfwd through the plain model at the cells' directions."""
+FIT_CASES = [
+    (CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6), twoscale.ModelConfig()),
+    (
+        PLASTIC.replace(beta=0.1, p=0.7, c=2.4),
+        twoscale.ModelConfig(material="plastic", apparatus=True, fresnel="schlick"),
+    ),
+    (CONDUCTOR.replace(beta=0.12, p=1.2), twoscale.ModelConfig(diffraction=False)),
+]
+
+
+@pytest.mark.parametrize("case", range(len(FIT_CASES)))
+def test_factorised_normal_equations_match_jacfwd(conductor_data, case):
+    """The fit's per-bin factorisation (factors of θ_d, θ_h and of both differentiated once per
+    pass, multiplied per pair) gives the normal equations of jacfwd through the plain model at
+    the cells' directions."""
     sel = select_cells(conductor_data)
     cells = sel.fit.take(np.random.default_rng(1).choice(len(sel.fit), 1500, replace=False))
-    adapter = adapter_for(twoscale.ModelConfig())
-    p0 = CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6)
+    p0, cfg = FIT_CASES[case]
+    adapter = adapter_for(cfg)
     spec = jax.tree_util.tree_map(lambda _: True, p0)
     free, frozen = eqx.partition(p0.to_unconstrained(), spec)
     layout = Layout.of(free)
@@ -180,7 +192,7 @@ def test_factorised_normal_equations_match_jacfwd(conductor_data):
     data, n_active = pack(pair_cells(cells), n_chunks=3, chunk=512)
 
     def full(yy):
-        pred = model.brdf(problem.params(yy, frozen), cells.wi, cells.wo)
+        pred = model.brdf(problem.params(yy, frozen), cells.wi, cells.wo, cfg)
         cos = cells.cos_i[:, None]
         return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
 

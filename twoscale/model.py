@@ -320,7 +320,14 @@ def _fresnel(ch: _Channels, cfg: ModelConfig, cos_d):
 
 
 def _half_diff_terms(
-    ch: _Channels, cos_h, cos_d, sin_d, cfg: ModelConfig, lobe_slice=None, fres=None
+    ch: _Channels,
+    cos_h,
+    cos_d,
+    sin_d,
+    cfg: ModelConfig,
+    lobe_slice=None,
+    fres=None,
+    factored: bool = False,
 ) -> dict:
     """The factors of the lobes that depend on ``θ_h`` and ``θ_d`` only, each ``(..., N)``.
 
@@ -329,6 +336,11 @@ def _half_diff_terms(
     directions). :func:`_cell_lobes` multiplies them by the factors of ``θ_i``, ``θ_o`` and ``φ``
     (``G``, ``1/(4 cos θ_i cos θ_o)``, apparatus, ``Q``), so on a grid of half/difference angles
     (MERL) these are computed once per ``(θ_h, θ_d)`` bin instead of once per cell.
+
+    ``factored``: each term as a pair ``(factor of θ_d, factor of θ_h or of both)`` instead of
+    their product: ``(A_s F, D)`` and ``((1 − A_s) Q (c−1)B²/(2π R), (S*D))``. The fit's
+    passes differentiate these once per bin and multiply them per cell, which is cheaper than
+    differentiating the products on every bin (:func:`half_diff_factors`).
     """
     out = {}
     if not (cfg.specular or cfg.diffraction):
@@ -344,12 +356,13 @@ def _half_diff_terms(
         one_minus_a = -jnp.expm1(-x)  # exactly 0 at σ_s = 0
         q = {"2F": 2.0 * f, "F": f}.get(cfg.q_mode, 1.0)
         lobe = _convolved_lobe(_chan(ch, cos_h), beta, p, c, big_b * cd, cfg.path, lobe_slice)
-        out["diffraction"] = one_minus_a * q * lobe * ratio / (2.0 * math.pi)
+        scale = one_minus_a * q * ratio / (2.0 * math.pi)
+        out["diffraction"] = (scale, lobe) if factored else scale * lobe
     else:
         a_s = 1.0
     if cfg.specular:
-        d = distribution.ndf(cos_h, ch.par["beta"], ch.par["p"])
-        out["specular"] = a_s * f * _chan(ch, d)
+        d = _chan(ch, distribution.ndf(cos_h, ch.par["beta"], ch.par["p"]))
+        out["specular"] = (a_s * f, d) if factored else a_s * f * d
     return out
 
 
@@ -596,6 +609,40 @@ def half_diff_terms(
         ih, jd = bins
         return _half_diff_terms(ch, cos_h[ih], cos_d[jd], sin_d[jd], config)
     return _half_diff_terms(ch, cos_h[:, None], cos_d[None, :], sin_d[None, :], config)
+
+
+def half_diff_factors(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig) -> dict:
+    """The factors of :func:`half_diff_terms` on every bin, flat, before their products.
+
+    ``{"specular": (A_s F (D, N), D (H, 1)), "diffraction": (its θ_d factor (D, N), the
+    convolved lobe (H·D, N))}`` for the lobes switched on; ``bin 90 ih + jd`` of the lobe at
+    that position. :func:`brdf_from_factors` evaluates cells from them.
+    """
+    ch = _channels(params, config, grid.cos_h)
+    cos_h, cos_d, sin_d = (jnp.asarray(a, ch.dtype) for a in (grid.cos_h, grid.cos_d, grid.sin_d))
+    n_h, n_d = cos_h.shape[0], cos_d.shape[0]
+    terms = _half_diff_terms(
+        ch, cos_h[:, None], cos_d[None, :], sin_d[None, :], config, factored=True
+    )
+    out = {}
+    for key, (per_d, other) in terms.items():
+        per_d = jnp.broadcast_to(per_d, (1, n_d, ch.eta.shape[-1])).reshape(n_d, -1)
+        other = other.reshape(n_h, 1) if key == "specular" else other.reshape(n_h * n_d, -1)
+        out[key] = (per_d, other)
+    return out
+
+
+def brdf_from_factors(
+    params: TwoScaleParams, factors: dict, ih, jd, cos_i, cos_o, phi, config: ModelConfig
+):
+    """:func:`brdf` at cells of a grid from :func:`half_diff_factors`, ``(..., C)``: ``ih``,
+    ``jd`` the cells' ``θ_h`` and ``θ_d`` bins (the same values as :func:`brdf_from_terms`)."""
+    ch = _channels(params, config, cos_i)
+    hd = {}
+    for key, (per_d, other) in factors.items():
+        n_d = per_d.shape[0]
+        hd[key] = per_d[jd] * (other[ih] if key == "specular" else other[ih * n_d + jd])
+    return _cells_total(ch, hd, cos_i, cos_o, phi, config)
 
 
 def brdf_from_terms(
