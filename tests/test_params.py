@@ -214,3 +214,26 @@ def test_dict_round_trip_through_json(make):
         np.testing.assert_array_equal(np.asarray(getattr(q, name)), np.asarray(value))
     with pytest.raises(ValueError, match="unknown key"):
         TwoScaleParams.from_dict({**d, "gamma": 1.0})
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_bound_maps_same_on_host_and_traced(dtype):
+    """Concrete values are mapped in NumPy (one host computation, not a dispatch per JAX
+    operation), traced ones in JAX: the same values, the input's dtype, bounds to ±40."""
+    for name in ("beta", "p", "sigma_s", "b", "c", "k", "rho_d", "e"):
+        bound = bounds_for(name, "conductor" if name == "k" else "plastic")
+        x = np.array([bound.lo, bound.lo + 1e-3 * (bound.hi - bound.lo), bound.hi, bound.hi * 2])
+        x = x.astype(dtype)
+        u_host, u_traced = bound.inverse(x), jax.jit(bound.inverse)(jnp.asarray(x))
+        assert u_host.dtype == u_traced.dtype == dtype
+        # float32 on a bound: NumPy's and XLA's log may round t to 1 or just below it (u = 40
+        # or ≈ 16.6, both σ(u) = 1 in float32): compared inside the range only.
+        inside = slice(None) if dtype == np.float64 else slice(1, 2)
+        tol = 1e-6 if dtype == np.float32 else 1e-14
+        np.testing.assert_allclose(u_host[inside], u_traced[inside], rtol=tol)
+        assert float(u_host[0]) == -40.0 and float(u_host[-1]) == 40.0
+        assert np.all(np.abs(np.asarray(u_traced)[[0, 2, 3]]) > 16.0)
+        v_host, v_traced = bound.forward(u_host), jax.jit(bound.forward)(u_traced)
+        assert v_host.dtype == v_traced.dtype == dtype
+        np.testing.assert_allclose(v_host, v_traced, rtol=tol, atol=tol * bound.hi)
+    assert bounds_for("beta", "conductor").inverse(0.1).dtype == jnp.asarray(0.1).dtype
