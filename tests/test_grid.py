@@ -174,7 +174,11 @@ FIT_CASES = [
 ]
 
 
-@pytest.mark.parametrize("case", range(len(FIT_CASES)))
+@pytest.mark.parametrize(
+    # The plastic compiles for ≈ 24 s (the conductor covers the same factor code): the slow set.
+    "case",
+    [0, pytest.param(1, marks=pytest.mark.slow), 2],
+)
 def test_factorised_normal_equations_match_jacfwd(conductor_data, case):
     """The fit's per-bin factorisation (factors of θ_d, θ_h and of both differentiated once per
     pass, multiplied per pair) gives the normal equations of jacfwd through the plain model at
