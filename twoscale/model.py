@@ -636,13 +636,30 @@ def brdf_from_factors(
     params: TwoScaleParams, factors: dict, ih, jd, cos_i, cos_o, phi, config: ModelConfig
 ):
     """:func:`brdf` at cells of a grid from :func:`half_diff_factors`, ``(..., C)``: ``ih``,
-    ``jd`` the cells' ``θ_h`` and ``θ_d`` bins (the same values as :func:`brdf_from_terms`)."""
+    ``jd`` the cells' ``θ_h`` and ``θ_d`` bins (the same values as :func:`brdf_from_terms`).
+
+    Channel first, as :func:`_pair_lobes`: each cell's factors are gathered into ``(N, ...)``
+    rows and the per-cell lobes are a ``vmap`` of one channel's, so XLA's loops run along the
+    cells; the total is moved to the channel-last output once.
+    """
     ch = _channels(params, config, cos_i)
+    cos_i, cos_o, phi = (jnp.asarray(a, ch.dtype) for a in (cos_i, cos_o, phi))
     hd = {}
     for key, (per_d, other) in factors.items():
         n_d = per_d.shape[0]
-        hd[key] = per_d[jd] * (other[ih] if key == "specular" else other[ih * n_d + jd])
-    return _cells_total(ch, hd, cos_i, cos_o, phi, config)
+        rows = jnp.moveaxis(per_d, -1, 0)[:, jd]  # (N, ...)
+        if key == "specular":
+            hd[key] = rows * other[ih, 0]
+        else:
+            hd[key] = rows * jnp.moveaxis(other, -1, 0)[:, ih * n_d + jd]
+    eta_bar = _eta_bar(ch, config) if config.has_diffuse else None
+
+    def one(eta, k, wl, rho_d, terms):
+        c1 = ch._replace(eta=eta, k=k, wl=wl, rho_d=rho_d, eta_bar=eta_bar)  # scalars
+        return sum(_masked_cell_lobes(c1, terms, cos_i, cos_o, phi, config).values())
+
+    total = jax.vmap(one)(ch.eta, ch.k, ch.wl, ch.rho_d, hd)
+    return _to_output(_channels_last(total), config)
 
 
 def brdf_from_terms(
