@@ -612,24 +612,31 @@ def half_diff_terms(
 
 
 def half_diff_factors(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig) -> dict:
-    """The factors of :func:`half_diff_terms` on every bin, flat, before their products.
+    """The factors of :func:`half_diff_terms` on every bin, channel first, before their products.
 
-    ``{"specular": (A_s F (D, N), D (H, 1)), "diffraction": (its θ_d factor (D, N), the
-    convolved lobe (H·D, N))}`` for the lobes switched on; ``bin 90 ih + jd`` of the lobe at
-    that position. :func:`brdf_from_factors` evaluates cells from them.
+    ``{"specular": (A_s F (N, D), D (N, H)), "diffraction": (its θ_d factor (N, D), the
+    convolved lobe (N, H·D))}`` for the lobes switched on; bin ``90 ih + jd`` of the lobe at
+    that position. A ``vmap`` of one channel's factors, as :func:`_pair_lobes`: XLA's loops run
+    along the bins, not over a minor axis of N = 3. :func:`brdf_from_factors` evaluates cells
+    from them.
     """
     ch = _channels(params, config, grid.cos_h)
     cos_h, cos_d, sin_d = (jnp.asarray(a, ch.dtype) for a in (grid.cos_h, grid.cos_d, grid.sin_d))
-    n_h, n_d = cos_h.shape[0], cos_d.shape[0]
-    terms = _half_diff_terms(
-        ch, cos_h[:, None], cos_d[None, :], sin_d[None, :], config, factored=True
-    )
-    out = {}
-    for key, (per_d, other) in terms.items():
-        per_d = jnp.broadcast_to(per_d, (1, n_d, ch.eta.shape[-1])).reshape(n_d, -1)
-        other = other.reshape(n_h, 1) if key == "specular" else other.reshape(n_h * n_d, -1)
-        out[key] = (per_d, other)
-    return out
+    n_d = cos_d.shape[0]
+    lobe_slice = _lobe_slice(ch, config)
+
+    def one(eta, k, wl, rho_d):
+        c1 = ch._replace(eta=eta, k=k, wl=wl, rho_d=rho_d)  # scalars
+        terms = _half_diff_terms(
+            c1, cos_h[:, None], cos_d[None, :], sin_d[None, :], config, lobe_slice, factored=True
+        )
+        out = {}
+        for key, (per_d, other) in terms.items():
+            per_d = jnp.broadcast_to(per_d, (1, n_d)).reshape(n_d)
+            out[key] = (per_d, other.reshape(-1))  # D: (H,); the lobe: (H·D,)
+        return out
+
+    return jax.vmap(one)(ch.eta, ch.k, ch.wl, ch.rho_d)
 
 
 def brdf_from_factors(
@@ -646,12 +653,9 @@ def brdf_from_factors(
     cos_i, cos_o, phi = (jnp.asarray(a, ch.dtype) for a in (cos_i, cos_o, phi))
     hd = {}
     for key, (per_d, other) in factors.items():
-        n_d = per_d.shape[0]
-        rows = jnp.moveaxis(per_d, -1, 0)[:, jd]  # (N, ...)
-        if key == "specular":
-            hd[key] = rows * other[ih, 0]
-        else:
-            hd[key] = rows * jnp.moveaxis(other, -1, 0)[:, ih * n_d + jd]
+        n_d = per_d.shape[-1]
+        idx = ih if key == "specular" else ih * n_d + jd
+        hd[key] = per_d[:, jd] * other[:, idx]
     eta_bar = _eta_bar(ch, config) if config.has_diffuse else None
 
     def one(eta, k, wl, rho_d, terms):
