@@ -103,7 +103,9 @@ def table(headers: list[str], rows: list[list]) -> str:
 
 
 def header(title: str, mach: dict, load_start: str, load_end: str, quick: bool, notes=()) -> str:
-    loaded = any(float(x.split()[0]) > 1.5 for x in (load_start, load_end) if x != "n/a")
+    # Only the load before the run says whether other work shared the machine: the load at the
+    # end includes this run's own work on every core.
+    loaded = load_start != "n/a" and float(load_start.split()[0]) > 1.5
     lines = [
         f"# {title}",
         "",
@@ -112,7 +114,8 @@ def header(title: str, mach: dict, load_start: str, load_end: str, quick: bool, 
         "",
         f"- Machine: {mach['cpu']}, {mach['cores']} cores; Python {mach['python']}; "
         f"JAX {mach['jax']}, backend `{mach['backend']}` ({mach['device']}); x64 {mach['x64']}.",
-        f"- Load average (1, 5, 15 min) at start: {load_start}; at end: {load_end}."
+        f"- Load average (1, 5, 15 min) at start: {load_start}; at end: {load_end} (the end "
+        "includes this run's own work)."
         + (" **Taken under load: timings are inflated.**" if loaded else ""),
         f"- Date: {time.strftime('%Y-%m-%d %H:%M:%S %Z')}.",
         "- Each time is the median of repeated warm runs; compile time (first call minus the "
