@@ -1,5 +1,6 @@
-"""Cross-seeding between material types: a type whose best start is behind after the first stage
-gets a start with the leader's geometry and its own type parameters
+"""Starts and cross-seeding: every start lies strictly inside the parameter ranges
+(:func:`twoscale.fit.candidates.inside_bounds`), and a type whose best start is behind after the
+first stage gets a start with the leader's geometry and its own type parameters
 (:func:`twoscale.fit.candidates.cross_seed`, :func:`twoscale.fit.driver._cross_seeds`)."""
 
 import dataclasses
@@ -8,9 +9,12 @@ import math
 import numpy as np
 
 from twoscale import ModelConfig, TwoScaleParams
-from twoscale.fit.candidates import SHARED_FIELDS, cross_seed, make_candidates
+from twoscale.fit.adapters import START_K_MAX, adapter_for
+from twoscale.fit.candidates import START_U_MAX, SHARED_FIELDS, cross_seed, make_candidates
 from twoscale.fit.driver import _cross_seeds
 from twoscale.fit.residuals import Problem
+from twoscale.fit.starts import DataStats
+from twoscale.params import bounds_for
 
 CONDUCTOR = TwoScaleParams.conductor(
     0.05, 0.8, (1.2, 1.3, 1.4), (2.0, 2.5, 3.0), sigma_s=0.05, b=2.0, c=1.5, e=0.7
@@ -102,3 +106,42 @@ def test_type_rms_is_the_plain_log_rms_of_the_same_cells():
     cand.cost = 0.123
     log_opts = solver.SolverSettings("log", "lm", solver.RTOL, solver.ATOL, solver.SE_TOL)
     assert driver._type_rms(cand, g, log_opts, prep.buffer, n_active, n_cells) == 0.123
+
+
+def test_starts_on_or_beyond_a_bound_are_moved_inside():
+    """A start value on or beyond a bound maps to |u| = 40, where no solver step moves it (a
+    conductor start with k = 12.5 for k ≤ 10 stayed at 10: 1.7x the reachable RMS on the
+    benchmark's synthetic conductor). Starts are moved to 1e-3 of the range inside; fixed
+    parameters keep their values."""
+    cfg = ModelConfig(apparatus=True)
+    outside = TwoScaleParams.conductor(
+        1.0, 0.8, (1.2, 7.0, 0.01), (12.5, 10.0, 0.0), sigma_s=0.0, b=2.0, c=5.0, e=0.7
+    )
+    groups, (cand,) = make_candidates([cfg], [[("edge", outside)]], {"c": 5.0})
+    got = _params(cand, groups[0])
+    assert np.all(np.abs(np.asarray(cand.y)) <= START_U_MAX + 1e-12)
+    for name in ("beta", "eta", "k", "sigma_s"):
+        bound = bounds_for(name, "conductor")
+        x = np.atleast_1d(np.asarray(getattr(got, name)))
+        assert np.all(x > bound.lo) and np.all(x < bound.hi), (name, x)
+    k = np.asarray(got.k)
+    assert 9.98 < k[0] < 10.0 and 9.98 < k[1] < 10.0 and 0.0 < k[2] < 0.02
+    assert 0.0 < float(got.sigma_s) < 2e-3
+    assert float(got.c) == 5.0  # fixed: untouched
+    # Values inside the range are kept as they were.
+    groups, (cand,) = make_candidates([cfg], [[("a", CONDUCTOR)]], {})
+    for name in ("beta", "p", "eta", "k", "sigma_s", "b", "c", "e"):
+        np.testing.assert_allclose(
+            getattr(_params(cand, groups[0]), name), getattr(CONDUCTOR, name), rtol=1e-9
+        )
+
+
+def test_conductor_starts_keep_k_inside_its_range():
+    """A bright, sharp peak asks for F0 near 1: the start's k stays at most START_K_MAX."""
+    stats = DataStats(peak=np.array([5e4, 2e3, 50.0]), floor=np.full(3, 1e-3), width=0.01)
+    for diffraction in (False, True):
+        cfg = ModelConfig(apparatus=True, diffraction=diffraction)
+        starts = adapter_for(cfg).starts(stats)
+        k = np.array([np.asarray(p.k) for _, p in starts])
+        assert np.all(k <= START_K_MAX) and np.all(k > 0)
+        assert np.any(k == START_K_MAX)  # the red channel's F0 asked for more

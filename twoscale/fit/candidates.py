@@ -152,6 +152,20 @@ def cross_seed(src: Candidate, g_src: Group, dst: Candidate, g_dst: Group) -> Ca
     )
 
 
+#: Largest |u| of a free parameter at a start (u the sigmoid's argument, see
+#: :class:`twoscale.params.Bound`): 1e-3 of the range inside a bound. A start on or beyond a
+#: bound maps to |u| = 40, where the parameter's derivative is ≈ 4e-18 and no solver step moves
+#: it (a conductor start with k = 12.5 for a range ending at 10 stayed at 10 for good).
+START_U_MAX = 6.9
+
+
+def inside_bounds(free):
+    """Free unconstrained start values moved to at most :data:`START_U_MAX` from 0."""
+    return jax.tree_util.tree_map(
+        lambda u: jnp.clip(u, -START_U_MAX, START_U_MAX) if eqx.is_inexact_array(u) else u, free
+    )
+
+
 def apply_fixed(params, fixed: dict, adapter):
     """Set the fixed fields (physical values) and return (params, spec of free leaves)."""
     spec = jax.tree_util.tree_map(lambda _: True, params)
@@ -185,6 +199,7 @@ def make_candidates(configs, start_lists, fixed: dict):
         for label, p0 in start_list:
             p0, spec = apply_fixed(p0, fixed, adapter)
             free, frozen = eqx.partition(adapter.to_unconstrained(p0), spec)
+            free = inside_bounds(free)
             layout = Layout.of(free)
             if group is None:
                 group = Group(adapter, spec, frozen, layout)
