@@ -10,7 +10,7 @@ import numpy as np
 
 from twoscale import ModelConfig, TwoScaleParams
 from twoscale.fit.adapters import START_K_MAX, adapter_for
-from twoscale.fit.candidates import START_U_MAX, SHARED_FIELDS, cross_seed, make_candidates
+from twoscale.fit.candidates import SHARED_FIELDS, START_U_MAX, cross_seed, make_candidates
 from twoscale.fit.driver import _cross_seeds
 from twoscale.fit.residuals import Problem
 from twoscale.fit.starts import DataStats
