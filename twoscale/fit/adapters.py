@@ -41,7 +41,10 @@ START_B = 1.0
 #: Start value of MERL's apparatus exponent (fits of the stand-ins end near 0.5–1).
 START_E = 0.5
 
-#: Largest extinction coefficient of a conductor start (k's range ends at 10; F0 = 0.944 at η = 1.2).
+#: Largest extinction coefficient of a conductor start (k's range ends at 10; F0 = 0.944 at
+#: η = 1.2). A brighter measured peak asks for k beyond the range; capping it here keeps the
+#: start a valid value where the bound's sigmoid still responds (the generic guard,
+#: :func:`twoscale.fit.candidates.inside_bounds`, only moves it 1e-3 of the range off the bound).
 START_K_MAX = 9.0
 
 #: Lobe names of the two-scale model, in the order of :meth:`TwoScaleAdapter.evaluate_lobes`.
@@ -309,7 +312,6 @@ class TwoScaleAdapter(AbstractAdapter):
                 extra["e"] = START_E
             if cfg.material == "conductor":
                 eta = np.full(3, 1.2)
-                # F0 ≳ 0.95 needs k beyond its range (k ≤ 10): a start on a bound cannot move.
                 k = np.minimum(conductor_k_for_f0(f0, 1.2), START_K_MAX)
                 params = TwoScaleParams.conductor(beta, p, eta, k, **extra)
             else:
