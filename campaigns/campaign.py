@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twoscale.fit.residuals import METRICS
+from twoscale.fit.residuals import DEFAULT_METRIC, METRICS
 from twoscale.fit.solver import STALL_RTOL
 
 MODELS = ("full", "specular", "ggx", "beckmann")
@@ -743,7 +743,7 @@ def main(argv=None) -> int:
     ap.add_argument("--materials", nargs="+", metavar="NAME", help="fit only these materials")
     ap.add_argument("--limit", type=int, help="fit only the first N materials")
     ap.add_argument("--preview", action="store_true", help="preview schedule (faster)")
-    ap.add_argument("--metric", choices=METRICS, default="scaled-log")
+    ap.add_argument("--metric", choices=METRICS, default=DEFAULT_METRIC)
     ap.add_argument(
         "--max-theta",
         type=float,

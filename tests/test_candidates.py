@@ -82,7 +82,7 @@ def test_cross_seeds_go_to_the_types_behind_only():
 
 def test_type_rms_is_the_plain_log_rms_of_the_same_cells():
     """The types are compared on the plain log metric; the driver computes it with the group's
-    compiled (scaled-log) solve on the buffer with every scale 1, which must equal the plain log
+    compiled (scaled-log or blend) solve on the buffer with every scale 1, which must equal the plain log
     metric's own sum of squares on the same cells."""
     import jax.numpy as jnp
 
@@ -95,13 +95,15 @@ def test_type_rms_is_the_plain_log_rms_of_the_same_cells():
     start = true.replace(beta=0.15, p=0.9).for_config(cfg)
     (g,), (cand,) = make_candidates([cfg], [[("a", start)]], {})
     n_active, n_cells = prep.stage_cells(Stage(4096, 1, 5))
-    opts = solver.SolverSettings("scaled-log", "lm", solver.RTOL, solver.ATOL, solver.SE_TOL)
-    got = driver._type_rms(cand, g, opts, prep.buffer, n_active, n_cells)
     rr = solver.jit_sum_squares(
         Problem(g.adapter, g.layout, "log"), cand.y, g.frozen, prep.buffer, jnp.int32(n_active)
     )
     want = math.sqrt(float(rr) / (n_cells * 3))
-    assert want > 0.0 and abs(got / want - 1.0) < 1e-10
+    assert want > 0.0
+    for metric in ("scaled-log", "blend"):  # both hold scaled residuals; both compare on "log"
+        opts = solver.SolverSettings(metric, "lm", solver.RTOL, solver.ATOL, solver.SE_TOL)
+        got = driver._type_rms(cand, g, opts, prep.buffer, n_active, n_cells)
+        assert abs(got / want - 1.0) < 1e-10, metric
     # Fitted on the plain log metric already: the candidate's own cost.
     cand.cost = 0.123
     log_opts = solver.SolverSettings("log", "lm", solver.RTOL, solver.ATOL, solver.SE_TOL)

@@ -277,26 +277,31 @@ def test_second_run_reuses_the_compilation_cache(files, tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("flags", "apparatus", "diffuse_fresnel", "fresnel"),
+    ("flags", "apparatus", "diffuse_fresnel", "fresnel", "metric"),
     [
-        ([], True, False, "auto"),
-        (["--diffuse-fresnel"], True, True, "auto"),
-        (["--no-apparatus", "--fresnel", "exact"], False, False, "exact"),
+        ([], True, False, "auto", "blend"),
+        (["--diffuse-fresnel", "--metric", "scaled-log"], True, True, "auto", "scaled-log"),
+        (["--no-apparatus", "--fresnel", "exact"], False, False, "exact", "blend"),
     ],
 )
 def test_cli_passes_the_merl_protocol(
-    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel, fresnel
+    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel, fresnel, metric
 ):
     """The two-scale fit gets :func:`twoscale.fit.merl_protocol` (apparatus factor, Lambertian
-    body) unless a flag says otherwise; the material type and a dielectric coat's Fresnel form
-    are left to the fit unless ``--fresnel`` fixes it."""
+    body) and the blended log metric unless a flag says otherwise; the material type and a
+    dielectric coat's Fresnel form are left to the fit unless ``--fresnel`` fixes it."""
     import twoscale.fit.driver as driver
     from twoscale.fit import merl_protocol
 
     seen = {}
 
     def spy(data, *, config, material, **kwargs):
-        seen.update(config=config, material=material, fresnel=kwargs.get("fresnel"))
+        seen.update(
+            config=config,
+            material=material,
+            fresnel=kwargs.get("fresnel"),
+            metric=kwargs.get("metric"),
+        )
         raise driver.FitError("stopped by the test")
 
     monkeypatch.setattr(driver, "fit", spy)
@@ -305,3 +310,4 @@ def test_cli_passes_the_merl_protocol(
     assert seen["config"] == merl_protocol(apparatus=apparatus, diffuse_fresnel=diffuse_fresnel)
     assert seen["material"] == "auto"
     assert seen["fresnel"] == fresnel
+    assert seen["metric"] == metric

@@ -86,7 +86,7 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
     np.testing.assert_array_equal(layout.ravel(layout.unravel(y)), y)
     scale = cells.log_scale()
     assert scale.shape == (3,) and np.all(scale > 0.0)
-    for metric in ("log", "scaled-log", "linear"):
+    for metric in ("log", "scaled-log", "blend", "linear"):
         problem = Problem(adapter, layout, metric)
         data, n_active = pack(pair_cells(cells), n_chunks=2, chunk=2048, log_scale=scale)
 
@@ -96,9 +96,15 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
             cos = cells.cos_i[:, None]
             if metric == "log":
                 return (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
-            if metric == "scaled-log":
+            if metric in ("scaled-log", "blend"):
                 cs = cos / scale
-                return (jnp.log1p(pred * cs) - jnp.log1p(cells.rho * cs)).reshape(-1)
+                r_s = (jnp.log1p(pred * cs) - jnp.log1p(cells.rho * cs)).reshape(-1)
+                if metric == "scaled-log":
+                    return r_s
+                # The blend: every cell's scaled and plain log residuals (the order of the
+                # residuals does not matter to the normal equations).
+                r_l = (jnp.log1p(pred * cos) - jnp.log1p(cells.rho * cos)).reshape(-1)
+                return jnp.concatenate([r_s, r_l])
             return ((pred - cells.rho) * cos).reshape(-1)
 
         r = full(y)
@@ -463,10 +469,11 @@ def test_type_choice_on_synthetic_materials(material):
     )
     assert res.type_selection["chosen"] == material, res.type_selection
     assert res.material == material
-    # The default metric is the scaled log; the types are compared on the plain log metric. With
-    # every scale s_c < 1, a fit's plain log residuals are cell by cell smaller than its scaled
-    # ones (d/dx log(1 + x/s) > d/dx log(1 + x)), so the type's RMS is below its stage RMS.
-    assert res.metric == "scaled-log" and res.type_selection["metric"] == "log"
+    # The default metric is the blend of the scaled and the plain log residuals; the types are
+    # compared on the plain log metric alone. With every scale s_c < 1, a fit's plain log
+    # residuals are cell by cell smaller than its scaled ones (d/dx log(1 + x/s) > d/dx
+    # log(1 + x)), so the type's RMS is below its stage RMS, which holds both.
+    assert res.metric == "blend" and res.type_selection["metric"] == "log"
     assert np.all(np.asarray(res.log_scale) < 1.0)
     stage = res.stages[res.type_selection["stage"] - 1]
     fitted = min(e["rms"] for e in stage["starts"] if e["start"].startswith(material))

@@ -1,6 +1,6 @@
 """Command line: fit the two-scale model (or a baseline) to a MERL ``.binary`` file.
 
-    python -m twoscale.fit material.binary [--out DIR] [--metric log|scaled-log|linear]
+    python -m twoscale.fit material.binary [--out DIR] [--metric blend|log|scaled-log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
         [--full] [--no-apparatus] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
         [--no-compile-cache] [--no-albedo] [--render]
@@ -54,6 +54,7 @@ progress); 1 unexpected internal error. Errors are one line on stderr, without a
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import os
 import shutil
 import sys
@@ -62,7 +63,7 @@ import time
 from pathlib import Path
 
 from twoscale._atomic import current_umask
-from twoscale.fit.residuals import METRICS
+from twoscale.fit.residuals import DEFAULT_METRIC, METRICS
 from twoscale.fit.synthetic import EXAMPLE  # the --example material
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FIT = 0, 1, 2, 3
@@ -86,8 +87,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--metric",
         choices=METRICS,
-        default="scaled-log",
-        help="fitted metric (docs/model.md §8)",
+        default=DEFAULT_METRIC,
+        help=f"fitted metric (default {DEFAULT_METRIC}: the scaled and the plain log residuals "
+        "of every cell; docs/model.md §8)",
     )
     ap.add_argument(
         "--material",
@@ -247,8 +249,11 @@ def _load(path: str):
     return data
 
 
-def _write_outputs(out: Path, result, data, plots: bool, log, render: bool = False) -> list[str]:
-    """Write everything into a temporary sibling folder, then move it into place."""
+def _write_outputs(
+    out: Path, result, data, plots: bool, log, render: bool = False, before_params=None
+) -> list[str]:
+    """Write everything into a temporary sibling folder, then move it into place;
+    ``before_params()`` (if given) is called before ``params.json`` is written."""
     from twoscale.fit.record import write_text_atomic
 
     out = out.resolve()
@@ -266,6 +271,8 @@ def _write_outputs(out: Path, result, data, plots: bool, log, render: bool = Fal
             log(f"pictures written ({time.perf_counter() - t:.1f} s)")
         if render:
             _write_render(result, data, tmp / "render.png", log)
+        if before_params is not None:
+            before_params()
         write_text_atomic(tmp / "params.json", result.to_json() + "\n")
         names = sorted(p.name for p in tmp.iterdir())
         if not out.exists():
@@ -394,9 +401,19 @@ def _run(args, log) -> int:
         raise FitFailed(str(err)) from None
     except ValueError as err:
         raise InputError(str(err)) from None
-    if not args.no_albedo:
-        _albedo(result, log)
-    names = _write_outputs(out, result, data, not args.no_plots, log, args.render)
+    # The albedo table (for params.json) is computed while the pictures are drawn: its
+    # compiled quadrature runs without Python's lock, the pictures are mostly Python.
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        job = None if args.no_albedo else pool.submit(_albedo, result, log)
+        names = _write_outputs(
+            out,
+            result,
+            data,
+            not args.no_plots,
+            log,
+            args.render,
+            before_params=None if job is None else job.result,
+        )
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
     print(result.summary())

@@ -46,7 +46,7 @@ from twoscale.fit.material_type import (
     resolve_fresnel,
 )
 from twoscale.fit.record import FitResult, package_versions
-from twoscale.fit.residuals import Problem, check_metric
+from twoscale.fit.residuals import DEFAULT_METRIC, Problem, check_metric, residuals_per_cell
 from twoscale.fit.schedule import Stage, resolve_schedule
 from twoscale.fit.starts import data_stats
 
@@ -88,8 +88,9 @@ class _Prepared:
 #: a statement about the interface (the highlight's height, colour and change with θ_d), which
 #: lives in the bright cells; the scaled log metric weighs every cell by its relative error, so
 #: there the dark floor, which a plastic's diffuse layer fits and a conductor has no term for,
-#: would decide. The same fits are therefore compared on the plain log metric (docs/model.md §8).
-TYPE_METRIC = {"scaled-log": "log"}
+#: would decide. The same fits are therefore compared on the plain log metric (docs/model.md §8);
+#: so are those of the blend, which holds the scaled log residuals too.
+TYPE_METRIC = {"scaled-log": "log", "blend": "log"}
 
 
 def _type_rms(cand, group, opts, buffer, n_active: int, n_cells: int) -> float:
@@ -98,11 +99,12 @@ def _type_rms(cand, group, opts, buffer, n_active: int, n_cells: int) -> float:
 
     The plain log metric is the scaled one with every scale 1, so it is computed by the
     group's solve, compiled already, on the buffer with ``s = 1`` (one step, which only
-    evaluates its start): no function is compiled for it (that cost ≈ 1 s per fit).
+    evaluates its start): no function is compiled for it (that cost ≈ 1 s per fit). With
+    ``s = 1`` the blend's two residuals of a cell are equal: its RMS is the plain log one.
     """
-    if opts.metric != "scaled-log":  # the only metric TYPE_METRIC maps (to "log")
+    if opts.metric not in TYPE_METRIC:  # both metrics it maps map to "log"
         return cand.cost
-    m = n_cells * group.adapter.config.n_channels
+    m = n_cells * group.adapter.config.n_channels * residuals_per_cell(opts.metric)
     unscaled = {**buffer, "s": jnp.ones_like(buffer["s"])}
     return math.sqrt(_solver.start_cost(cand.y, group, unscaled, n_active, m, opts) / m)
 
@@ -203,7 +205,7 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
         done: list = []  # starts finished on this stage, each in a minimum of its own
         for ci, cand in enumerate(cands):
             g = groups[cand.group]
-            m = n_cells * g.adapter.config.n_channels
+            m = n_cells * g.adapter.config.n_channels * residuals_per_cell(opts.metric)
             ts = time.perf_counter()
             if warm is not None:
                 warm.wait(g)
@@ -297,7 +299,7 @@ class FitSettings:
     """Every setting of a fit, validated, as one value (so no phase drops one on the way; the
     special-case fit of the nested starts runs with the same value)."""
 
-    metric: str = "scaled-log"
+    metric: str = DEFAULT_METRIC
     max_theta_deg: float | None = None
     fixed: dict = dataclasses.field(default_factory=dict)
     starts: str | tuple = "default"
@@ -391,7 +393,9 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
         # form alone: its solve is compiled once that form is known, not both forms' now.
         pending = {gi for gi in twins if few}
 
-        def warm_full(indices):
+        def warm_full(indices, grids: bool = False):
+            """Queue the full models' solves (or, with ``grids``, their evaluation on the MERL
+            grid, which the type choice and the record use)."""
             full = [(configs[gi], adapter_for(configs[gi]).starts(prep.stats)) for gi in indices]
             full = [(cfg, sl[:1]) for cfg, sl in full if sl]
             if not full:
@@ -399,11 +403,11 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             f_groups, f_cands = make_candidates(
                 [cfg for cfg, _ in full], [sl for _, sl in full], settings.fixed
             )
-            for c in f_cands:
-                warm.submit(f_groups[c.group], c.y)
-            # The evaluation on the MERL grid that the type choice and the record use.
             for gi, g in enumerate(f_groups):
                 c = next(c for c in f_cands if c.group == gi)
+                if not grids:
+                    warm.submit(g, c.y)
+                    continue
                 p0 = Problem(g.adapter, g.layout, settings.metric).params(c.y, g.frozen)
                 warm.submit_call(
                     ("grid", g.adapter.config), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
@@ -461,8 +465,14 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
-        if warm is not None and pending:
-            warm_full(sorted(pending))
+                pending.add(len(configs) - 1)
+        if warm is not None:
+            # A Schlick twin's solve (known only now) before the grid evaluations, which are
+            # needed last (type choice): on an empty compilation cache that order keeps the
+            # twin's first start from compiling its solve itself (≈ 10 s on 2 cores).
+            if pending:
+                warm_full(sorted(pending))
+            warm_full(range(len(configs)), grids=True)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
                 continue
@@ -547,7 +557,7 @@ def fit(
     *,
     config=None,
     material: str | None = None,
-    metric: str = "scaled-log",
+    metric: str = DEFAULT_METRIC,
     max_theta_deg: float | None = None,
     fixed: dict | None = None,
     starts: str | Sequence = "default",
@@ -573,9 +583,10 @@ def fit(
         material: override the configuration's material type; ``"auto"`` tries conductor and
             plastic and keeps the better (compared on the last subsample stage; near-ties go to
             the physically consistent type, see :func:`~twoscale.fit.material_type.choose_type`).
-        metric: ``"scaled-log"`` (default: the log metric with each channel's ρ cos θ_i divided
-            by its median over the fitted cells), ``"log"`` (Löw et al. 2012) or ``"linear"``;
-            all cosine-weighted (docs/model.md §8).
+        metric: ``"blend"`` (default: both log residuals of every cell, the scaled one and
+            the plain one), ``"scaled-log"`` (the log metric with each channel's ρ cos θ_i
+            divided by its median over the fitted cells), ``"log"`` (Löw et al. 2012) or
+            ``"linear"``; all cosine-weighted (docs/model.md §8).
         max_theta_deg: fit only cells with ``θ_i, θ_o ≤`` this angle (errors still on all cells).
         fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
         starts: ``"default"`` (placed from the data), ``"few"`` (a subset of those: the
