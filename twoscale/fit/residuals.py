@@ -206,8 +206,8 @@ class Problem(eqx.Module):
             return None
         return self.adapter.bin_terms(self.params(y, frozen))
 
-    def chunk_residual(self, y, frozen, chunk, terms=None) -> jax.Array:
-        """Residuals of one chunk of pairs, flattened ``(chunk × 2 × C,)``; absent members give 0.
+    def chunk_prediction(self, y, frozen, chunk, terms=None) -> jax.Array:
+        """The model at one chunk of pairs, ``(chunk, 1, C)``.
 
         ``terms``: :meth:`terms` at ``y`` for a factorised adapter (the model is then evaluated
         from the pairs' bin indices and cosines), None for the others (from the directions).
@@ -217,7 +217,18 @@ class Problem(eqx.Module):
             pred = self.adapter.evaluate(params, chunk["wi"], chunk["wo"])
         else:
             pred = self.adapter.evaluate_cells(params, terms, chunk)
-        return metric_residual(pred[:, None, :], chunk, self.metric).reshape(-1)
+        return pred[:, None, :]
+
+    def chunk_residual(self, y, frozen, chunk, terms=None) -> jax.Array:
+        """Residuals of one chunk of pairs, flattened ``(chunk × 2 × C,)`` (``× 2`` again for
+        ``"blend"``); absent members give 0. ``terms``: see :meth:`chunk_prediction`."""
+        pred = self.chunk_prediction(y, frozen, chunk, terms)
+        return metric_residual(pred, chunk, self.metric).reshape(-1)
+
+    def chunk_rows(self, y, frozen, chunk, terms=None) -> tuple[jax.Array, jax.Array]:
+        """``(rows, rᵀr)`` of one chunk: :func:`metric_rows` of :meth:`chunk_prediction`."""
+        rows, rr = metric_rows(self.chunk_prediction(y, frozen, chunk, terms), chunk, self.metric)
+        return rows.reshape(-1), rr
 
 
 def metric_residual(pred, chunk, metric: str):
@@ -237,6 +248,36 @@ def metric_residual(pred, chunk, metric: str):
     if metric == "blend":
         return jnp.concatenate([log_residual(cos * chunk["s"]), log_residual(cos)], axis=-2)
     return (pred - chunk["rho"]) * cos * w
+
+
+def metric_rows(pred, chunk, metric: str):
+    """Rows of the normal equations of predictions ``(chunk, 1, C)`` and their ``rᵀr``.
+
+    For every metric but the blend, the rows are the residuals themselves. The blend's two
+    residuals of a cell, ``r_s`` (scaled log) and ``r_l`` (plain log), depend on the model
+    through the same value ``ρ``, with derivatives ``a_s w dρ`` and ``a_l w dρ``
+    (``a = k/(1 + ρk)`` for ``k = cos θ_i / s_c`` and ``cos θ_i``). One row per cell with
+    derivative ``A w dρ``, ``A = √(a_s² + a_l²)``, and value ``w (a_s r_s + a_l r_l)/A`` gives the
+    same ``JᵀJ`` and ``Jᵀr`` (``rᵀr`` is returned apart, as ``Σ r_s² + r_l²``): half the rows to
+    differentiate and to accumulate. The row's value is written as
+    ``stop_gradient(value − A w ρ) + stop_gradient(A) w ρ``, whose derivative is ``A w dρ``.
+    """
+    if metric != "blend":
+        r = metric_residual(pred, chunk, metric)
+        return r, jnp.sum(r * r)
+    cos = chunk["cos"][..., None]
+    w = chunk["w"][..., None]
+    k_s, k_l = cos * chunk["s"], cos
+    x_s, x_l = pred * k_s, pred * k_l
+    r_s = (jnp.log1p(x_s) - jnp.log1p(chunk["rho"] * k_s)) * w
+    r_l = (jnp.log1p(x_l) - jnp.log1p(chunk["rho"] * k_l)) * w
+    a_s, a_l = k_s / (1.0 + x_s), k_l / (1.0 + x_l)
+    big_a = jnp.sqrt(a_s * a_s + a_l * a_l)
+    safe_a = jnp.where(big_a > 0.0, big_a, 1.0)  # absent members: cos = 0, w = 0
+    value = (a_s * r_s + a_l * r_l) / safe_a
+    slope = jax.lax.stop_gradient(big_a) * w
+    rows = jax.lax.stop_gradient(value - slope * pred) + slope * pred
+    return rows, jnp.sum(r_s * r_s) + jnp.sum(r_l * r_l)
 
 
 def sum_squares(problem: Problem, y, frozen, data, n_active) -> jax.Array:
@@ -263,7 +304,9 @@ def linearised_terms(problem: Problem, y, frozen):
 
 
 def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None):
-    """Residuals ``(m,)`` and transposed Jacobian ``(n, m)`` of one chunk (compressed seeds).
+    """Rows ``(m,)``, their transposed Jacobian ``(n, m)`` and ``rᵀr`` of one chunk (compressed
+    seeds; rows as :func:`metric_rows`: the residuals, or for ``"blend"`` one row per cell and
+    channel with the same normal equations).
 
     ``terms``, ``terms_dot``: :func:`linearised_terms` (factorised adapters), computed once per
     pass: the per-bin part of the model is differentiated once, not once per chunk.
@@ -274,20 +317,22 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
     if terms is None:
 
         def f(yy):
-            return problem.chunk_residual(yy, frozen, chunk)
+            return problem.chunk_rows(yy, frozen, chunk)
 
-        r, jac_s = jax.vmap(lambda t: jax.jvp(f, (y,), (t,)), out_axes=(None, 0))(seeds)
+        (r, rr), (jac_s, _) = jax.vmap(lambda t: jax.jvp(f, (y,), (t,)), out_axes=(None, 0))(
+            seeds
+        )
     else:
 
         def f2(yy, tt):
-            return problem.chunk_residual(yy, frozen, chunk, tt)
+            return problem.chunk_rows(yy, frozen, chunk, tt)
 
-        r, jac_s = jax.vmap(lambda t, td: jax.jvp(f2, (y, terms), (t, td)), out_axes=(None, 0))(
-            seeds, terms_dot
-        )
+        (r, rr), (jac_s, _) = jax.vmap(
+            lambda t, td: jax.jvp(f2, (y, terms), (t, td)), out_axes=(None, 0)
+        )(seeds, terms_dot)
     # Expand the compressed columns: rows are (entry, member, channel) with channel fastest.
     jac_t = jac_s[owner].reshape(owner.size, -1, n_ch) * jnp.asarray(mask, y.dtype)[:, None, :]
-    return r, jac_t.reshape(owner.size, -1)
+    return r, jac_t.reshape(owner.size, -1), rr
 
 
 def normal_equations(problem: Problem, y, frozen, data, n_active):
@@ -296,9 +341,9 @@ def normal_equations(problem: Problem, y, frozen, data, n_active):
     terms, terms_dot = linearised_terms(problem, y, frozen)
 
     def step(acc, chunk):
-        r, jac_t = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
+        r, jac_t, rr_chunk = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
         jtj, jtr, rr = acc
-        return jtj + jac_t @ jac_t.T, jtr + jac_t @ r, rr + r @ r
+        return jtj + jac_t @ jac_t.T, jtr + jac_t @ r, rr + rr_chunk
 
     init = (jnp.zeros((n, n), y.dtype), jnp.zeros((n,), y.dtype), jnp.zeros((), y.dtype))
     return _fold_chunks(step, init, data, n_active)
