@@ -319,9 +319,7 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
         def f(yy):
             return problem.chunk_rows(yy, frozen, chunk)
 
-        (r, rr), (jac_s, _) = jax.vmap(lambda t: jax.jvp(f, (y,), (t,)), out_axes=(None, 0))(
-            seeds
-        )
+        (r, rr), (jac_s, _) = jax.vmap(lambda t: jax.jvp(f, (y,), (t,)), out_axes=(None, 0))(seeds)
     else:
 
         def f2(yy, tt):
