@@ -304,16 +304,14 @@ def linearised_terms(problem: Problem, y, frozen):
 
 
 def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=None):
-    """Rows ``(m,)``, their transposed Jacobian ``(n, m)`` and ``rᵀr`` of one chunk (compressed
-    seeds; rows as :func:`metric_rows`: the residuals, or for ``"blend"`` one row per cell and
+    """Rows ``(m,)``, their derivatives along the compressed seeds ``(s, m)`` and ``rᵀr`` of one
+    chunk (rows as :func:`metric_rows`: the residuals, or for ``"blend"`` one row per cell and
     channel with the same normal equations).
 
     ``terms``, ``terms_dot``: :func:`linearised_terms` (factorised adapters), computed once per
     pass: the per-bin part of the model is differentiated once, not once per chunk.
     """
-    seed, mask, owner = problem.seeds()
-    n_ch = problem.adapter.config.n_channels
-    seeds = jnp.asarray(seed, dtype=y.dtype)
+    seeds = jnp.asarray(problem.seeds()[0], dtype=y.dtype)
     if terms is None:
 
         def f(yy):
@@ -328,23 +326,58 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
         (r, rr), (jac_s, _) = jax.vmap(
             lambda t, td: jax.jvp(f2, (y, terms), (t, td)), out_axes=(None, 0)
         )(seeds, terms_dot)
-    # Expand the compressed columns: rows are (entry, member, channel) with channel fastest.
-    jac_t = jac_s[owner].reshape(owner.size, -1, n_ch) * jnp.asarray(mask, y.dtype)[:, None, :]
-    return r, jac_t.reshape(owner.size, -1), rr
+    return r, jac_s, rr
+
+
+def _gram(problem: Problem, jac_s, r):
+    """Per channel, the Gram matrix of the compressed seeds' rows and their product with the
+    residuals: ``(C, s, s)`` and ``(C, s)``. Rows are (entry, member, channel), channel fastest.
+
+    The full ``JᵀJ`` follows from them (:func:`_expand`): a per-channel parameter's column is its
+    seed's column on its own channel and 0 on the others, so ``JᵀJ[i, j] = Σ_c mask[i, c]
+    mask[j, c] P_c[owner i, owner j]``. Accumulating the ``s × s`` blocks per channel instead of
+    the ``n × n`` product of the expanded Jacobian multiplies ``s² = 49`` instead of ``n² = 121``
+    numbers per row (11 parameters of a conductor, 7 seeds) and never builds the expanded rows.
+    """
+    n_ch = problem.adapter.config.n_channels
+    jac_c = jnp.moveaxis(jac_s.reshape(jac_s.shape[0], -1, n_ch), -1, 0)  # (C, s, rows)
+    r_c = r.reshape(-1, n_ch).T  # (C, rows)
+    gram = jnp.einsum("cai,cbi->cab", jac_c, jac_c, precision=jax.lax.Precision.HIGHEST)
+    proj = jnp.einsum("cai,ci->ca", jac_c, r_c, precision=jax.lax.Precision.HIGHEST)
+    return gram, proj
+
+
+def _expand(problem: Problem, gram, proj):
+    """``(JᵀJ, Jᵀr)`` of the free parameters from :func:`_gram`'s per-channel blocks."""
+    _, mask, owner = problem.seeds()
+    m = jnp.asarray(mask, gram.dtype)  # (n, C)
+    o = np.asarray(owner)
+    jtj = jnp.einsum("ic,jc,cij->ij", m, m, gram[:, o][:, :, o])
+    jtr = jnp.einsum("ic,ci->i", m, proj[:, o])
+    return jtj, jtr
 
 
 def normal_equations(problem: Problem, y, frozen, data, n_active):
-    """``(JᵀJ, Jᵀr, rᵀr)`` over the active chunks, without keeping the Jacobian."""
-    n = y.shape[0]
+    """``(JᵀJ, Jᵀr, rᵀr)`` over the active chunks, without keeping the Jacobian (accumulated per
+    channel on the compressed seeds, :func:`_gram`)."""
     terms, terms_dot = linearised_terms(problem, y, frozen)
+    n_seeds = problem.seeds()[0].shape[0]
+    n_ch = problem.adapter.config.n_channels
 
     def step(acc, chunk):
-        r, jac_t, rr_chunk = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
-        jtj, jtr, rr = acc
-        return jtj + jac_t @ jac_t.T, jtr + jac_t @ r, rr + rr_chunk
+        r, jac_s, rr_chunk = chunk_jacobian(problem, y, frozen, chunk, terms, terms_dot)
+        gram, proj = _gram(problem, jac_s, r)
+        g_acc, p_acc, rr = acc
+        return g_acc + gram, p_acc + proj, rr + rr_chunk
 
-    init = (jnp.zeros((n, n), y.dtype), jnp.zeros((n,), y.dtype), jnp.zeros((), y.dtype))
-    return _fold_chunks(step, init, data, n_active)
+    init = (
+        jnp.zeros((n_ch, n_seeds, n_seeds), y.dtype),
+        jnp.zeros((n_ch, n_seeds), y.dtype),
+        jnp.zeros((), y.dtype),
+    )
+    gram, proj, rr = _fold_chunks(step, init, data, n_active)
+    jtj, jtr = _expand(problem, gram, proj)
+    return jtj, jtr, rr
 
 
 #: Relative jitter added to the diagonal of JᵀJ before its Cholesky factorisation, so that a
