@@ -661,7 +661,14 @@ def trade(sizes: Sizes) -> str:
         text += _harmonics(lobe_harmonic, sizes)
 
     # Fitted RMSE change on stand-in materials (preview schedule).
-    if sizes.trade_fits:
+    from campaigns.nbrdf import default_npz
+
+    if sizes.trade_fits and not default_npz().is_file():
+        text += (
+            "\n## Fitted RMSE (Neural-BRDF stand-ins)\n\nSkipped: the stand-ins' weights "
+            f"`{default_npz()}` are absent (set `TWOSCALE_SHARED` to the shared folder).\n"
+        )
+    elif sizes.trade_fits:
         fit_rows = []
         for mat in sizes.materials:
             base_r = None
