@@ -93,7 +93,7 @@ class FitResult:
         params: fitted parameters (``TwoScaleParams`` or a baseline's params), physical units.
         model: ``"two-scale"`` or the baseline's name.
         config: the model configuration as a dict (``{"model": ..., "material": ..., ...}``).
-        metric: ``"log"``, ``"scaled-log"`` or ``"linear"`` (the fitted metric).
+        metric: ``"blend"``, ``"log"``, ``"scaled-log"`` or ``"linear"`` (the fitted metric).
         rmse_linear, rmse_log: RMSE of both cosine-weighted metrics over all valid cells and channels.
         per_channel: ``{"rmse_linear": [C], "rmse_log": [C], "rmse_log_scaled": [C]}``.
         rmse_log_scaled: RMSE of the scaled log metric over all valid cells and channels (with
