@@ -262,8 +262,7 @@ def map_params(beta, p, c, u):
 
 
 def normalised_angle(cos_theta_h, u, beta, q, log_map):
-    """The table's angle coordinate ``t ∈ [0, 1]`` (``log_map`` from :func:`map_params`, its 3
-    entries on the last axis, or a sequence of the 3 as separate arrays).
+    """The table's angle coordinate ``t ∈ [0, 1]`` (``log_map`` from :func:`map_params`).
 
     The bracket of :func:`_t_bracket` with ``ζ/ζ_end``, ``ζ/ζ_π`` and ``1/T_max`` as products by
     ``exp(−log …)`` and ``(1 + s⁴)^{−1/4}`` as ``1/√√(1 + s⁴)``: the same values to rounding,
@@ -275,8 +274,7 @@ def normalised_angle(cos_theta_h, u, beta, q, log_map):
     s2 = (1.0 - ct) * (1.0 + ct)
     a2 = 1.0 / (1.0 + 4.0 * u * u)
     zeta = _zeta(s2, c2, beta, q, a2)
-    parts = log_map if isinstance(log_map, (tuple, list)) else [log_map[..., j] for j in range(3)]
-    inv_end, inv_pi, inv_max = (jnp.exp(-x) for x in parts)
+    inv_end, inv_pi, inv_max = (jnp.exp(-log_map[..., j]) for j in range(3))
     s = zeta * inv_end
     s4 = (s * s) * (s * s)
     root = jnp.sqrt(jnp.sqrt(1.0 + s4))
@@ -306,7 +304,7 @@ class LobeSlice(eqx.Module):
 
     def __call__(self, cos_theta_h, u):
         au = asinh_nonneg(u)
-        t = normalised_angle(cos_theta_h, u, self.beta, self.q, self.log_map.components(au))
+        t = normalised_angle(cos_theta_h, u, self.beta, self.q, self.log_map(au))
         ct = jnp.clip(cos_theta_h, 0.0, 1.0)
         base = ct * ct + jnp.exp(self.log_k) * (1.0 - ct) * (1.0 + ct)
         # On a grid (u per θ_d bin and channel, shared by every θ_h) contract along u once per u.

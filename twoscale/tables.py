@@ -207,22 +207,6 @@ class Spline(eqx.Module):
 
     def __call__(self, *coords):
         """Evaluate at broadcast coordinates (one array per axis); trailing components appended."""
-        outs, shape, comp = self._evaluate(coords)
-        if not comp:
-            return outs[0]
-        return jnp.stack(outs, axis=-1).reshape(shape + comp)
-
-    def components(self, *coords) -> list:
-        """:meth:`__call__`'s values as one array per component (a spline with one trailing
-        component axis): the same values, each contiguous. Stacking them on a trailing axis of a
-        few entries and reading them back as ``v[..., j]`` kept XLA's CPU loops from running
-        along the samples: a 1-D lookup of 3 components took 94 ms instead of 46 ms at
-        4.4 M float32 samples."""
-        if self.coeffs.ndim != self.ndim + 1:
-            raise ValueError("components needs a spline with one trailing component axis")
-        return self._evaluate(coords)[0]
-
-    def _evaluate(self, coords):
         if len(coords) != self.ndim:
             raise ValueError(f"spline has {self.ndim} axes, got {len(coords)} coordinates")
         c = self.coeffs
@@ -254,7 +238,9 @@ class Spline(eqx.Module):
                 o + w * row.at[idx].get(mode="promise_in_bounds")
                 for o, row in zip(outs, rows, strict=True)
             ]
-        return outs, shape, comp
+        if not comp:
+            return outs[0]
+        return jnp.stack(outs, axis=-1).reshape(shape + comp)
 
 
 @dataclass(frozen=True, eq=False)
