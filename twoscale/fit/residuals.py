@@ -265,13 +265,12 @@ def metric_rows(pred, chunk, metric: str):
     if metric != "blend":
         r = metric_residual(pred, chunk, metric)
         return r, jnp.sum(r * r)
-    cos = chunk["cos"][..., None]
+    r_s = metric_residual(pred, chunk, "scaled-log")
+    r_l = metric_residual(pred, chunk, "log")
+    k_l = chunk["cos"][..., None]
+    k_s = k_l * chunk["s"]
+    a_s, a_l = k_s / (1.0 + pred * k_s), k_l / (1.0 + pred * k_l)
     w = chunk["w"][..., None]
-    k_s, k_l = cos * chunk["s"], cos
-    x_s, x_l = pred * k_s, pred * k_l
-    r_s = (jnp.log1p(x_s) - jnp.log1p(chunk["rho"] * k_s)) * w
-    r_l = (jnp.log1p(x_l) - jnp.log1p(chunk["rho"] * k_l)) * w
-    a_s, a_l = k_s / (1.0 + x_s), k_l / (1.0 + x_l)
     big_a = jnp.sqrt(a_s * a_s + a_l * a_l)
     safe_a = jnp.where(big_a > 0.0, big_a, 1.0)  # absent members: cos = 0, w = 0
     value = (a_s * r_s + a_l * r_l) / safe_a
