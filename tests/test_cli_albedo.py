@@ -109,3 +109,30 @@ def test_no_albedo_flag(cli_out):
     raw = json.loads((cli_out["off"] / "params.json").read_text())
     assert "albedo_table" not in raw
     assert load_result(cli_out["off"] / "params.json").albedo_table is None
+
+
+def test_table_through_the_pictures_evaluation():
+    """The CLI computes the table through the lobe evaluation its pictures compile, with the
+    apparatus exponent set to 0 (the factor is then 1 above the horizon): the same table as
+    :func:`twoscale.albedo`'s own quadrature at the same nodes, to rounding."""
+    from twoscale.fit.adapters import adapter_for
+    from twoscale.fit.evaluation import material_evaluator
+    from twoscale.fit.record import albedo_table_entry
+
+    assert CONFIG.apparatus and float(PARAMS.e) != 0.0
+    for params, config in [
+        (PARAMS, CONFIG),
+        (
+            twoscale.TwoScaleParams.plastic(
+                0.05, 0.8, (1.5, 1.5, 1.5), (0.2, 0.3, 0.4), 0.01, 2.0, 1.8, e=0.7
+            ),
+            dataclasses.replace(CONFIG, material="plastic", diffuse_fresnel=True),
+        ),
+    ]:
+        ref = albedo_table_entry(params, config, n=32)
+        got = albedo_table_entry(
+            params, config, n=32, evaluate=material_evaluator(adapter_for(config), params)
+        )
+        assert got["channels"] == ref["channels"] and got["quadrature"] == ref["quadrature"]
+        np.testing.assert_allclose(got["values"], ref["values"], rtol=1e-12, atol=0)
+        assert np.all(np.asarray(got["values"]) > 0.01)

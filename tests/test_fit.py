@@ -450,9 +450,21 @@ def test_bihemispherical_albedo_of_a_lambertian_table():
 
 
 @pytest.mark.parametrize("material", ["conductor", "plastic"])
-def test_type_choice_on_synthetic_materials(material):
-    """``material="auto"`` types a synthetic conductor as a conductor and a plastic as a plastic."""
+def test_type_choice_on_synthetic_materials(material, monkeypatch):
+    """``material="auto"`` types a synthetic conductor as a conductor and a plastic as a plastic;
+    the chosen configuration's evaluation (pictures, albedo table) is compiled in the background
+    while the last stage runs, once."""
+    import twoscale.fit.driver as driver
     from twoscale import ModelConfig, TwoScaleParams
+
+    warmed = []
+    real_warm = driver.warm_evaluation
+
+    def spy(adapter, params):
+        warmed.append(adapter.config)
+        return real_warm(adapter, params)
+
+    monkeypatch.setattr(driver, "warm_evaluation", spy)
 
     if material == "conductor":
         true = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
@@ -469,6 +481,8 @@ def test_type_choice_on_synthetic_materials(material):
     )
     assert res.type_selection["chosen"] == material, res.type_selection
     assert res.material == material
+    assert [c.material for c in warmed] == [material]
+    assert warmed[0] == res.model_config
     # The default metric is the blend of the scaled and the plain log residuals; the types are
     # compared on the plain log metric alone. With every scale s_c < 1, a fit's plain log
     # residuals are cell by cell smaller than its scaled ones (d/dx log(1 + x/s) > d/dx

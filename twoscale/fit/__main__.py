@@ -305,6 +305,8 @@ def _check_render(args) -> None:
 def _albedo(result, log) -> None:
     """Put the directional-albedo table into ``result`` (a warning instead if it fails)."""
     from twoscale.config import ModelConfig
+    from twoscale.fit.adapters import adapter_for
+    from twoscale.fit.evaluation import material_evaluator
     from twoscale.fit.record import albedo_table_entry
 
     config = result.model_config
@@ -312,7 +314,10 @@ def _albedo(result, log) -> None:
         return  # a baseline
     t = time.perf_counter()
     try:
-        result.albedo_table = albedo_table_entry(result.params, config)
+        # Through the lobe evaluation the pictures use (compiled by the fit while its last
+        # stage ran): no compiled function of its own.
+        evaluate = material_evaluator(adapter_for(config), result.params)
+        result.albedo_table = albedo_table_entry(result.params, config, evaluate=evaluate)
     except Exception as err:  # noqa: BLE001 - the fit is kept; the table is an extra
         if os.environ.get("TWOSCALE_DEBUG"):
             raise

@@ -36,6 +36,7 @@ from twoscale.fit.evaluation import (
     rmse,
     rmse_within,
     standard_errors,
+    warm_evaluation,
 )
 from twoscale.fit.material_type import (
     body_levels,
@@ -201,6 +202,14 @@ def _run_schedule(prep: _Prepared, groups, cands, stages, opts, say, choose: boo
     fresnel_choice = {}
     for si, stage in enumerate(stages):
         n_active, n_cells = prep.stage_cells(stage)
+        if warm is not None and choose and si == len(stages) - 1 and cands:
+            # The configuration is final: its lobe evaluation (pictures, albedo table) compiles
+            # while the last stage runs.
+            g = groups[cands[0].group]
+            p_best = Problem(g.adapter, g.layout, opts.metric).params(cands[0].y, g.frozen)
+            warm.submit_call(
+                ("lobes", g.adapter.config), lambda a=g.adapter, p=p_best: warm_evaluation(a, p)
+            )
         entries = []
         done: list = []  # starts finished on this stage, each in a minimum of its own
         for ci, cand in enumerate(cands):

@@ -92,14 +92,16 @@ def predict_cells(adapter, params, cells) -> np.ndarray:
 SMALL_DIRECTION_CHUNKS = 16
 
 
-def evaluate_at(fn, params, wi, wo, n_out: int) -> np.ndarray:
+def evaluate_at(fn, params, wi, wo, n_out: int, *, small: bool = False) -> np.ndarray:
     """``fn(params, wi, wo) -> (N, n_out)`` at NumPy directions ``(N, 3)``, through a
     fixed-shape buffer (:data:`SMALL_DIRECTION_CHUNKS` chunks for up to that many directions,
-    else MERL-sized: every call with the same ``fn`` and size class shares one compiled function)."""
+    else MERL-sized: every call with the same ``fn`` and size class shares one compiled function).
+    ``small``: the small buffer whatever ``N`` (several calls of its compiled function)."""
     wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
     wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
     n = wi.shape[0]
-    n_chunks = SMALL_DIRECTION_CHUNKS if n <= SMALL_DIRECTION_CHUNKS * CHUNK else DIRECTION_CHUNKS
+    small = small or n <= SMALL_DIRECTION_CHUNKS * CHUNK
+    n_chunks = SMALL_DIRECTION_CHUNKS if small else DIRECTION_CHUNKS
     cap = n_chunks * CHUNK
     out = []
     for start in range(0, max(n, 1), cap):
@@ -196,3 +198,33 @@ def fit_warnings(group: Group, cand: Candidate, params, cov_info: dict) -> list[
     if cov_info.get("rank_deficient"):
         out.append(cov_info.get("note", "rank-deficient Jacobian"))
     return out
+
+
+def warm_evaluation(adapter, params) -> np.ndarray:
+    """Compile the evaluation that a fit's pictures and albedo table use (two-scale: its lobes,
+    :meth:`~twoscale.fit.adapters.TwoScaleAdapter.evaluate_lobes`; otherwise the model) by
+    calling it at one direction pair."""
+    d = np.array([[0.0, 0.0, 1.0]])
+    n_ch = adapter.config.n_channels
+    if hasattr(adapter, "evaluate_lobes"):
+        from twoscale.fit.adapters import LOBES
+
+        return evaluate_at(adapter.evaluate_lobes, params, d, d, len(LOBES) * n_ch)
+    return evaluate_at(adapter.evaluate, params, d, d, n_ch)
+
+
+def material_evaluator(adapter, params):
+    """``f(wi, wo) -> (N, C)``: a two-scale fit's material without MERL's apparatus factor
+    (``e = 0`` makes it 1 above the horizon), as the sum of its lobes through the compiled
+    evaluation of the pictures (:func:`warm_evaluation`), in calls of the small buffer."""
+    from twoscale.fit.adapters import LOBES
+
+    if adapter.config.apparatus and params.e is not None:
+        params = params.replace(e=jnp.zeros_like(params.e))
+    n_ch = adapter.config.n_channels
+
+    def f(wi, wo):
+        vals = evaluate_at(adapter.evaluate_lobes, params, wi, wo, len(LOBES) * n_ch, small=True)
+        return vals.reshape(-1, len(LOBES), n_ch).sum(axis=1)
+
+    return f
