@@ -25,8 +25,8 @@ def test_lambertian_body_is_rho_over_pi_and_leaves_the_other_lobes_alone():
     ref = twoscale.lobes(PARAMS, WI, WO, FRESNEL)
     rho = np.asarray(PARAMS.rho_d)
     np.testing.assert_allclose(np.asarray(lam["diffuse"]), np.broadcast_to(rho / np.pi, (3, 3)))
-    for name in ("specular", "diffraction"):
-        np.testing.assert_array_equal(np.asarray(lam[name]), np.asarray(ref[name]))
+    for name in ("specular", "diffraction"):  # the same code in two compiled programs
+        np.testing.assert_allclose(np.asarray(lam[name]), np.asarray(ref[name]), rtol=1e-11)
     # The reference layer darkens towards grazing; the Lambertian body does not.
     assert np.all(np.asarray(ref["diffuse"])[2] < np.asarray(lam["diffuse"])[2])
 
