@@ -637,6 +637,11 @@ def fit(
 
     Raises:
         ValueError: bad arguments or no valid data. :class:`FitError`: no start gave a finite fit.
+
+    Compilation: each configuration's solve is compiled in a background thread ahead of its
+    first use, and while the last stage runs, the evaluation that pictures and the albedo table
+    use (:func:`twoscale.plots.write_fit_pictures`; one compiled function per configuration, ≈ 2 s
+    on 2 cores the first time in a process or compilation cache).
     """
     t0 = time.perf_counter()
     if not jax.config.jax_enable_x64:
