@@ -10,8 +10,8 @@ faster at nearly the same speed of the compiled code. Measured on the 2-core mac
 - the whole CLI with an empty compilation cache: pvc 54.5 → 43.5 s, silver-paint 61-64 → 53 s
   (the same fits to 1e-15); with a warm cache pvc 26.4-26.7 → 27.3-27.5 s;
 - but some kernels run slower without them (the convolution table's accuracy checks in the
-  tests: 5.2 → 30.7 s, 6× slower), so the library itself leaves XLA's default alone: only the CLI and the test
-  suite, which compile far more than they run, ask for it.
+  tests: 5.2 → 30.7 s, 6× slower), so the library itself leaves XLA's default alone: only the
+  CLI and the test suite, which compile far more than they run, ask for it.
 
 The flag must be in ``XLA_FLAGS`` before JAX starts its CPU backend (the first computation), and
 XLA aborts the process on a flag it does not know, so it is only added when the installed jaxlib
