@@ -344,8 +344,9 @@ def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate=None) -> d
 
     ``evaluate(wi, wo) -> (N, C)`` (NumPy directions ``(N, 3)`` in and values out), if given,
     is the BRDF used at the same quadrature nodes instead: the CLI passes the evaluation its
-    pictures already compiled (:func:`albedo_evaluator`), which saves compiling
-    :func:`twoscale.albedo` (≈ 3 s on an empty compilation cache). Same sum, same nodes.
+    pictures already compiled (:func:`twoscale.fit.evaluation.material_evaluator`), which saves
+    compiling :func:`twoscale.albedo` (≈ 3 s on an empty compilation cache). Same sum, same
+    nodes.
     """
     import jax
     import jax.numpy as jnp
