@@ -126,6 +126,44 @@ def test_compressed_problem_matches_full_residuals(ct_noisy):
         )
 
 
+def test_folded_passes_equal_chunk_by_chunk_passes(ct_noisy):
+    """A pass takes :data:`~twoscale.fit.residuals.FOLD` chunks of the buffer at a time where
+    their number allows, masking the pairs of inactive chunks inside a partly active fold: its
+    normal equations and sum of squares are those of the same pairs taken chunk by chunk, for
+    every number of active chunks (a stage's prefix). The buffer's measured log terms are those
+    of its values, and follow its scale."""
+    from twoscale.fit.cells import with_scale
+    from twoscale.fit.residuals import FOLD, sum_squares
+
+    sel = select_cells(ct_noisy)
+    cells = sel.fit.take(np.random.default_rng(1).choice(len(sel.fit), 1300, replace=False))
+    pairs = pair_cells(cells)
+    assert 2 * 512 < len(pairs) <= 3 * 512
+    adapter = adapter_for(CT)
+    free, frozen = eqx.partition(adapter.to_unconstrained(CT_TRUE), True)
+    layout = Layout.of(free)
+    problem = Problem(adapter, layout, "blend")
+    y = layout.ravel(free) + 0.05  # away from the truth: residuals of both signs
+    scale = cells.log_scale()
+    folded, n_active = pack(pairs, n_chunks=2 * FOLD, chunk=512, log_scale=scale)
+    plain, _ = pack(pairs, n_chunks=3, chunk=512, log_scale=scale)  # 3: not foldable
+    assert n_active == 3
+    rho, cos = np.asarray(plain["rho"]), np.asarray(plain["cos"])[..., None]
+    np.testing.assert_allclose(plain["log"], np.log1p(rho * cos), rtol=1e-15)
+    np.testing.assert_allclose(plain["log_s"], np.log1p(rho * cos / scale), rtol=1e-15)
+    unscaled = with_scale(plain, 1.0)
+    np.testing.assert_allclose(unscaled["log_s"], plain["log"], rtol=1e-15)
+    rr = []
+    for n in (1, 2, 3):
+        want = normal_equations(problem, y, frozen, plain, n)
+        got = normal_equations(problem, y, frozen, folded, n)
+        for a, b in zip(want, got, strict=True):
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * np.abs(a).max())
+        np.testing.assert_allclose(sum_squares(problem, y, frozen, folded, n), want[2], rtol=1e-12)
+        rr.append(float(want[2]))
+    assert rr[0] < rr[1] < rr[2]  # each active chunk adds its pairs, the others none
+
+
 def test_scaled_log_metric_is_scale_invariant(ct_noisy):
     """The scaled log metric's scale is each channel's median ρ cos θ_i (floored), so scaling a
     channel's data and model by k leaves its error unchanged, where the plain log metric (nearly

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -220,7 +221,25 @@ def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK, log_scal
     if scale.shape != (n_ch,) or not np.all(scale > 0):
         raise ValueError(f"log_scale must be {n_ch} positive values, got {scale!r}")
     buf["s"] = np.broadcast_to(1.0 / scale, (n_chunks, n_ch)).copy()
+    buf.update(measured_logs(buf["rho"], buf["cos"], buf["s"]))
     return {k: jnp.asarray(v) for k, v in buf.items()}, n_active
+
+
+def measured_logs(rho, cos, s) -> dict:
+    """The log metrics' measured terms, computed once per buffer rather than in every pass:
+    ``{"log_s": log(1 + ρ cos θ_i s), "log": log(1 + ρ cos θ_i)}``, ``(n_chunks, chunk, 2, C)``,
+    for ``rho`` ``(n_chunks, chunk, 2, C)``, ``cos`` ``(n_chunks, chunk, 2)`` and the inverse
+    scales ``s`` ``(n_chunks, C)`` of :func:`pack`."""
+    xp = jnp if isinstance(rho, jax.Array) else np
+    k = cos[..., None] * rho
+    return {"log_s": xp.log1p(k * s[:, None, None, :]), "log": xp.log1p(k)}
+
+
+def with_scale(buffer: dict, inverse_scale) -> dict:
+    """``buffer`` with every chunk's inverse log scale ``s`` replaced by ``inverse_scale``
+    (``(C,)``) and its measured log terms (:func:`measured_logs`) recomputed to match."""
+    s = jnp.broadcast_to(jnp.asarray(inverse_scale, buffer["s"].dtype), buffer["s"].shape)
+    return {**buffer, "s": s, **measured_logs(buffer["rho"], buffer["cos"], s)}
 
 
 def pack_directions(wi, wo, n_chunks: int = DIRECTION_CHUNKS, chunk: int = CHUNK):

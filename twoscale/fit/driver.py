@@ -16,7 +16,6 @@ import time
 from collections.abc import Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from twoscale.fit import solver as _solver
@@ -29,7 +28,7 @@ from twoscale.fit.candidates import (
     nested_starts,
     same_solution,
 )
-from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells
+from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells, with_scale
 from twoscale.fit.evaluation import (
     fit_warnings,
     predict_cells,
@@ -106,7 +105,7 @@ def _type_rms(cand, group, opts, buffer, n_active: int, n_cells: int) -> float:
     if opts.metric not in TYPE_METRIC:  # both metrics it maps map to "log"
         return cand.cost
     m = n_cells * group.adapter.config.n_channels * residuals_per_cell(opts.metric)
-    unscaled = {**buffer, "s": jnp.ones_like(buffer["s"])}
+    unscaled = with_scale(buffer, 1.0)
     return math.sqrt(_solver.start_cost(cand.y, group, unscaled, n_active, m, opts) / m)
 
 
