@@ -733,6 +733,9 @@ def _materials(
 
 
 def main(argv=None) -> int:
+    from twoscale._hugepages import avoid_hugepage_stalls
+
+    avoid_hugepage_stalls()  # as the CLI (twoscale/_hugepages.py)
     ap = argparse.ArgumentParser(
         prog="python -m campaigns.campaign", description=__doc__.split("\n")[0]
     )

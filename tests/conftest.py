@@ -5,12 +5,15 @@ from pathlib import Path
 
 import pytest
 
+from twoscale._hugepages import avoid_hugepage_stalls
 from twoscale._xla import prefer_fast_compile
 
 # Before JAX starts: the suite compiles far more than it runs, as the CLI does (twoscale._xla:
 # the fast set 427 -> 370 s on 2 cores, measured; .ci/run also runs it with
 # XLA's default emitters, TWOSCALE_FAST_COMPILE=0).
 prefer_fast_compile()
+# No huge-page advice for NumPy's large arrays, as in the CLI (twoscale._hugepages).
+avoid_hugepage_stalls()
 
 import jax  # noqa: E402
 

@@ -22,7 +22,9 @@ Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACH
 file, skips most of the compilation; ``--no-compile-cache`` (or ``TWOSCALE_COMPILE_CACHE=0``)
 switches it off. XLA compiles with its older CPU loop emitters, about a third faster to compile
 at nearly the same speed (:mod:`twoscale._xla` has the measurements), unless ``XLA_FLAGS`` already
-sets ``xla_cpu_use_fusion_emitters`` or ``TWOSCALE_FAST_COMPILE=0``.
+sets ``xla_cpu_use_fusion_emitters`` or ``TWOSCALE_FAST_COMPILE=0``. NumPy's huge-page advice
+for large arrays is switched off, whose page faults can stall on Linux (a warm run 38 → 31 s;
+:mod:`twoscale._hugepages`), unless ``NUMPY_MADVISE_HUGEPAGE`` is set.
 
 Writes ``DIR/params.json`` (the fit record; loads back with ``twoscale.fit.load_result``) and
 ``DIR/slices.png``, ``DIR/lobes.png``, ``DIR/spheres.png`` (not with ``--no-plots``); prints a
@@ -65,6 +67,7 @@ import time
 from pathlib import Path
 
 from twoscale._atomic import current_umask
+from twoscale._hugepages import avoid_hugepage_stalls
 from twoscale._xla import prefer_fast_compile
 from twoscale.fit.residuals import DEFAULT_METRIC, METRICS
 from twoscale.fit.synthetic import EXAMPLE  # the --example material
@@ -436,6 +439,9 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     # Before JAX's first computation: XLA's faster-compiling CPU emitters (twoscale._xla).
     prefer_fast_compile()
+    # Before the large host arrays: no huge-page advice, whose page faults may stall
+    # (twoscale._hugepages).
+    avoid_hugepage_stalls()
 
     def log(msg: str) -> None:
         if not args.quiet:
