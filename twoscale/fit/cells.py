@@ -182,11 +182,13 @@ def pair_cells(cells: Cells) -> Pairs:
 
 
 def pack(pairs: Pairs, n_chunks: int = PAIR_CHUNKS, chunk: int = CHUNK, log_scale=None):
-    """Pairs → device buffer ``{wi, wo, rho, cos, w, hd, phi, s}``, ``(n_chunks, chunk, ...)``.
+    """Pairs → device buffer ``{wi, wo, rho, cos, w, hd, phi, s, log_s, log}``,
+    ``(n_chunks, chunk, ...)``.
 
     ``hd = 90 ih + jd``: the pair's ``(θ_h, θ_d)`` bin. ``s``: ``(n_chunks, C)``, the inverse
     of ``log_scale`` (``(C,)``, the ``"scaled-log"`` metric's scale; 1 when None) repeated for
-    every chunk, so each chunk carries it.
+    every chunk, so each chunk carries it. ``log_s``, ``log``: :func:`measured_logs` (use
+    :func:`with_scale` to change ``s``).
 
     Padding entries repeat the first pair (finite everywhere) with weight ``w = 0``.
     Returns ``(buffer, n_active)``: the number of leading chunks that hold pairs.
