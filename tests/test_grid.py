@@ -208,6 +208,69 @@ def test_factorised_normal_equations_match_jacfwd(conductor_data, case):
     np.testing.assert_allclose(jtr, jac.T @ r, rtol=1e-7, atol=1e-11 * np.abs(jtr).max())
 
 
+def test_grid_lobe_rule_forward_reverse_and_frozen():
+    """The lobe on the grid's bins carries its own forward-mode rule (its derivative along
+    β, p, c, b, applied to every tangent): through the fit's factors, jacfwd and jacrev equal
+    the plain model's jacfwd at the cells' directions; with β, p, c and b frozen the rest
+    still differentiates; the grid's own angles are not differentiable."""
+    from jax.flatten_util import ravel_pytree
+
+    from twoscale.geometry import _azimuth_difference
+
+    cfg = twoscale.ModelConfig(apparatus=True)
+    params = CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6, e=0.7)
+    rng = np.random.default_rng(4)
+    ih, jd, kp = (rng.integers(0, n, 200) for n in (90, 90, 180))
+    wi, wo = _dirs_from_half_diff(np, *merl.bin_to_angles(ih, jd, kp, "lower"))
+    phi = _azimuth_difference(np, wi, wo, 1e-30)
+    above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    grid = model.merl_grid("lower")
+    u0, unravel = ravel_pytree(params.to_unconstrained())
+
+    def factored(u):
+        p = twoscale.TwoScaleParams.from_unconstrained(unravel(u))
+        fac = model.half_diff_factors(p, grid, cfg)
+        return model.brdf_from_factors(p, fac, ih, jd, wi[:, 2], wo[:, 2], phi, cfg)[above]
+
+    def plain(u):
+        p = twoscale.TwoScaleParams.from_unconstrained(unravel(u))
+        return model.brdf(p, wi, wo, cfg)[above]
+
+    ref = jax.jit(jax.jacfwd(plain))(u0)
+    scale = np.abs(ref).max()
+    for jac in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jac(factored))(u0)
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12 * scale)
+
+    # Only η and k differentiated (the lobe's four parameters constants: symbolic zeros).
+    def eta_k_only(v):
+        p = twoscale.TwoScaleParams.from_unconstrained(unravel(u0))
+        p = p.replace(eta=jnp.exp(v[:3]), k=jnp.exp(v[3:]))
+        fac = model.half_diff_factors(p, grid, cfg)
+        return model.brdf_from_factors(p, fac, ih, jd, wi[:, 2], wo[:, 2], phi, cfg)[above]
+
+    def eta_k_plain(v):
+        p = twoscale.TwoScaleParams.from_unconstrained(unravel(u0))
+        p = p.replace(eta=jnp.exp(v[:3]), k=jnp.exp(v[3:]))
+        return model.brdf(p, wi, wo, cfg)[above]
+
+    v0 = jnp.log(jnp.concatenate([jnp.asarray(params.eta), jnp.asarray(params.k)]))
+    np.testing.assert_allclose(
+        jax.jit(jax.jacfwd(eta_k_only))(v0),
+        jax.jit(jax.jacfwd(eta_k_plain))(v0),
+        rtol=1e-10,
+        atol=1e-12 * scale,
+    )
+    with pytest.raises(NotImplementedError, match="grid"):
+        jax.jvp(
+            lambda c: model._grid_lobe(
+                ("tables", jnp.float64), jnp.array([0.1, 1.0, 2.0, 1.0]), c, c, jnp.ones(3)
+            ),
+            (grid.cos_h,),
+            (jnp.ones_like(grid.cos_h),),
+        )
+
+
 def test_predict_cells_grid_path(conductor_data):
     sel = select_cells(conductor_data)
     cells = sel.valid.take(np.arange(0, len(sel.valid), 997))
