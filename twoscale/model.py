@@ -616,7 +616,7 @@ def half_diff_terms(
 
 
 def _grid_lobe_value(static, x, cos_h, cos_d, wl):
-    """The convolved lobe of every channel on a grid's bins, ``(N, H·D)``, at
+    """The convolved lobe of every channel on a grid's bins, ``(N, H, D)``, at
     ``x = (β, p, c, b)`` (tables path); ``static = (path, dtype)``."""
     path, dtype = static
     beta, p, c, b = x[0], x[1], x[2], x[3]
@@ -624,7 +624,7 @@ def _grid_lobe_value(static, x, cos_h, cos_d, wl):
 
     def one(w):
         u = (b / w) * cos_d[None, :]  # u = B cos θ_d, B = b/λ
-        return _convolved_lobe(cos_h[:, None], beta, p, c, u, path, lobe_slice).reshape(-1)
+        return _convolved_lobe(cos_h[:, None], beta, p, c, u, path, lobe_slice)
 
     return jax.vmap(one)(wl)
 
@@ -648,10 +648,14 @@ def _grid_lobe_jvp(static, primals, tangents):
     dx, *rest = tangents
     if not all(_is_zero(t) for t in rest):
         raise NotImplementedError("the grid's angles and wavelengths are not differentiated")
-    out = _grid_lobe_value(static, x, cos_h, cos_d, wl)
     if _is_zero(dx):
+        out = _grid_lobe_value(static, x, cos_h, cos_d, wl)
         return out, jnp.zeros_like(out)
-    jac = jax.jacfwd(lambda xx: _grid_lobe_value(static, xx, cos_h, cos_d, wl))(x)  # (N, M, 4)
+    # The value and its derivative along each of the four parameters in one vmapped JVP.
+    out, jac = jax.vmap(
+        lambda t: jax.jvp(lambda xx: _grid_lobe_value(static, xx, cos_h, cos_d, wl), (x,), (t,)),
+        out_axes=(None, -1),
+    )(jnp.eye(x.shape[0], dtype=x.dtype))  # jac: (N, H, D, 4)
     return out, jac @ dx
 
 
@@ -687,7 +691,7 @@ def half_diff_factors(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelC
             config,
             lobe_slice,
             factored=True,
-            lobe=None if lobe is None else lobe.reshape(cos_h.shape[0], n_d),
+            lobe=lobe,
         )
         out = {}
         for key, (per_d, other) in terms.items():

@@ -120,11 +120,11 @@ def _fold_chunks(step, init, data, n_active, fold: int | None = None):
             else v.reshape(n_chunks // fold, fold * chunk, *v.shape[2:])
             for k, v in data.items()
         }
-    granule = jnp.arange(fold * chunk) // chunk
 
     def active_step(acc, i):
         part = _chunk_at(data, i)
         if fold > 1:
+            granule = jnp.arange(fold * chunk) // chunk
             active = i * fold + granule < n_active
             w = part["w"]
             part = {**part, "w": jnp.where(active.reshape(-1, *(1,) * (w.ndim - 1)), w, 0.0)}
@@ -357,8 +357,8 @@ def chunk_jacobian(problem: Problem, y, frozen, chunk, terms=None, terms_dot=Non
     ``terms``, ``terms_dot``: :func:`linearised_terms` (factorised adapters), computed once per
     pass: the per-bin part of the model is differentiated once, not once per chunk.
     """
-    seeds = jnp.asarray(problem.seeds()[0], dtype=y.dtype)
     if terms is None:
+        seeds = jnp.asarray(problem.seeds()[0], dtype=y.dtype)
 
         def f(yy):
             return problem.chunk_rows(yy, frozen, chunk)
