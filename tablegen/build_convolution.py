@@ -35,8 +35,8 @@ from twoscale.tables import DATA_DIR, Axis  # noqa: E402
 
 SETTINGS = {
     "n_beta": 14,
-    "n_p": 12,
-    "n_c": 8,
+    "n_p": 22,
+    "n_c": 14,
     "n_u": 20,
     "n_t": 40,
     "n_theta_quad": 61,
@@ -131,7 +131,7 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         raise ValueError("convolution map parameters are non-finite")
     meta = {
         "name": "convolution",
-        "version": 2,
+        "version": 3,
         "axes": [a.__dict__ for a in ax],
         "components": [],
         "generator": {**s, "module": "tablegen.build_convolution", "values_dtype": "float32"},
