@@ -93,10 +93,14 @@ def main(argv=None) -> int:
     wi, wo = _grid(1)
     floor, floor_lookup, table = _floor_fns()
     m = common.machine()
-    print(f"# Floors of a per-direction evaluation ({m['cpu']}, {m['cores']} cores, JAX {m['jax']})")
+    print(
+        f"# Floors of a per-direction evaluation ({m['cpu']}, {m['cores']} cores, JAX {m['jax']})"
+    )
     print()
-    print(f"{wi.shape[0]:,} direction pairs; median of {args.repeats} warm runs; load average "
-          f"{common.loadavg()}.")
+    print(
+        f"{wi.shape[0]:,} direction pairs; median of {args.repeats} warm runs; load average "
+        f"{common.loadavg()}."
+    )
     print()
     print("| what | float64 | ÷ GGX | float32 | ÷ GGX |")
     print("| --- | ---: | ---: | ---: | ---: |")
@@ -107,19 +111,22 @@ def main(argv=None) -> int:
         tab = jnp.asarray(table, dtype)
         cases = {
             "plain JAX GGX + Lambert (reference)": (ggx_lambert, ggx_inputs(wi, wo, dtype)),
-            "`twoscale.brdf`, full model": (jax.jit(lambda q, x, y: twoscale.brdf(q, x, y)),
-                                           (p, a, b)),
+            "`twoscale.brdf`, full model": (
+                jax.jit(lambda q, x, y: twoscale.brdf(q, x, y)),
+                (p, a, b),
+            ),
             "floor: frame (with φ) + correlated G + D": (jax.jit(floor), (p, a, b)),
-            "floor + 3-channel bicubic lookup (θ_h, θ_d)": (jax.jit(floor_lookup),
-                                                            (p, a, b, tab)),
+            "floor + 3-channel bicubic lookup (θ_h, θ_d)": (jax.jit(floor_lookup), (p, a, b, tab)),
         }
         for name, (fn, fargs) in cases.items():
             t = common.timed(lambda fn=fn, fargs=fargs: fn(*fargs), args.repeats)
             rows.setdefault(name, []).append(t["median"])
     ref = rows["plain JAX GGX + Lambert (reference)"]
     for name, (t64, t32) in rows.items():
-        print(f"| {name} | {t64 * 1e3:.1f} ms | {t64 / ref[0]:.2f}× | {t32 * 1e3:.1f} ms | "
-              f"{t32 / ref[1]:.2f}× |")
+        print(
+            f"| {name} | {t64 * 1e3:.1f} ms | {t64 / ref[0]:.2f}× | {t32 * 1e3:.1f} ms | "
+            f"{t32 / ref[1]:.2f}× |"
+        )
     return 0
 
 
