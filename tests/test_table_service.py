@@ -86,3 +86,27 @@ def test_interpolation_hook():
     assert tables.spline(shadowing.TABLE_NAME, jnp.float64) is default
     with pytest.raises(ValueError, match="order"), tables.interpolation(order=2):
         pass
+
+
+def test_large_table_stored_float32_computes_float64():
+    """The convolution table keeps float32 coefficients (they are constants of every compiled
+    function that slices it) but slices and evaluates in float64: its values agree with the
+    float64 coefficients' to the float32 rounding, and the result and its gradient are float64."""
+    name = convolution.TABLE_NAME
+    assert name in tables.STORED_FLOAT32
+    stored = tables.spline(name, jnp.float64)
+    assert stored.coeffs.dtype == jnp.float32 and stored.dtype == jnp.float64
+    wide = tables.load_table(name).spline(jnp.float64)
+    assert wide.coeffs.dtype == jnp.float64 and wide.compute is None
+    at = (jnp.log(0.01), jnp.log(0.7), jnp.log(0.5))
+    a, b = stored.slice(*at), wide.slice(*at)
+    assert a.coeffs.dtype == jnp.float64
+    x = (jnp.linspace(0.0, 7.0, 9), jnp.linspace(0.0, 1.0, 9))
+    np.testing.assert_allclose(np.asarray(a(*x)), np.asarray(b(*x)), rtol=0, atol=2e-6)
+    # A 5-D query straight on the stored spline gives the same as slicing first.
+    full = stored(*(jnp.full(9, v) for v in at), *x)
+    assert full.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(full), np.asarray(a(*x)), rtol=1e-12, atol=1e-12)
+    g = jax.grad(lambda lb: stored.slice(lb, *at[1:])(*x).sum())(at[0])
+    gw = jax.grad(lambda lb: wide.slice(lb, *at[1:])(*x).sum())(at[0])
+    assert g.dtype == jnp.float64 and abs(float(g) - float(gw)) <= 1e-5 * (1 + abs(float(gw)))

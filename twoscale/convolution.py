@@ -316,7 +316,7 @@ class LobeSlice(eqx.Module):
 def lobe_spline(beta, p, c, dtype=jnp.float64) -> LobeSlice:
     """Slice the table at scalar ``(β, p, c)`` (once per parameter set); see :class:`LobeSlice`."""
     g, log_map, log_k = _splines(dtype)
-    dt = g.coeffs.dtype
+    dt = g.dtype
     beta, p, c = (jnp.asarray(x, dt) for x in (beta, p, c))
     lb, lp, lc = _coords(beta, p, c)
     return LobeSlice(

@@ -26,7 +26,8 @@ resolution studies).
 :func:`spline` for ``(table name, dtype, extra)`` and get one shared :class:`Spline`, built once
 (coefficients solved in NumPy float64, then cast to the *canonical* dtype, i.e. float64 becomes
 float32 unless ``jax_enable_x64`` is on, so the key is the dtype the arrays really have) and kept
-in one registry. ``extra`` names a further array of the same file that a kernel interpolates over
+in one registry (the tables of :data:`STORED_FLOAT32` keep float32 coefficients and compute in
+float64: :attr:`Spline.compute`). ``extra`` names a further array of the same file that a kernel interpolates over
 the table's leading axes (the convolution table's angle map and ``log k``). :func:`clear_caches`
 empties the registry and the :func:`load_table` cache; :func:`cached_splines` lists what is
 built. :func:`interpolation` is a study hook (``python -m benchmarks.run``): while active, the
@@ -153,10 +154,18 @@ class Spline(eqx.Module):
     step: tuple[float, ...] = eqx.field(static=True)
     n: tuple[int, ...] = eqx.field(static=True)
     order: int = eqx.field(static=True, default=3)
+    #: The dtype the spline computes in, when the coefficients are stored narrower (a large
+    #: table's float32 coefficients in float64 code, see :data:`STORED_FLOAT32`); None: theirs.
+    compute: str | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.order not in ORDERS:
             raise ValueError(f"Spline.order must be one of {ORDERS}, got {self.order!r}")
+
+    @property
+    def dtype(self):
+        """The dtype of the spline's coordinates, weights and results."""
+        return jnp.dtype(self.compute) if self.compute else self.coeffs.dtype
 
     @property
     def ndim(self) -> int:
@@ -172,15 +181,14 @@ class Spline(eqx.Module):
 
         The contraction is exact: the result interpolates the same function restricted to the slice.
         """
-        c = self.coeffs
+        c, dt = self.coeffs, self.dtype
         for k, x in enumerate(coords):
-            i, w = _weights(
-                jnp.asarray(x, c.dtype), self.lo[k], self.step[k], self.n[k], self.order
-            )
-            block = jax.lax.dynamic_slice_in_dim(c, i, self.width, axis=0)
-            c = jnp.tensordot(w.astype(c.dtype), block, axes=(0, 0))
+            i, w = _weights(jnp.asarray(x, dt), self.lo[k], self.step[k], self.n[k], self.order)
+            # Only the block the slice reads is widened to the compute dtype.
+            block = jax.lax.dynamic_slice_in_dim(c, i, self.width, axis=0).astype(dt)
+            c = jnp.tensordot(w.astype(dt), block, axes=(0, 0))
         m = len(coords)
-        return Spline(c, self.lo[m:], self.step[m:], self.n[m:], self.order)
+        return Spline(c.astype(dt), self.lo[m:], self.step[m:], self.n[m:], self.order)
 
     def call_shared_first(self, x0, x1):
         """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
@@ -193,7 +201,7 @@ class Spline(eqx.Module):
         """
         if self.ndim != 2 or self.coeffs.ndim != 2:
             raise ValueError("call_shared_first needs a 2-D spline without components")
-        c = self.coeffs
+        c = self.coeffs.astype(self.dtype)
         x0 = jnp.asarray(x0, c.dtype)
         x1 = jnp.asarray(x1, c.dtype)
         shape = jnp.broadcast_shapes(x0.shape, x1.shape)
@@ -209,8 +217,8 @@ class Spline(eqx.Module):
         """Evaluate at broadcast coordinates (one array per axis); trailing components appended."""
         if len(coords) != self.ndim:
             raise ValueError(f"spline has {self.ndim} axes, got {len(coords)} coordinates")
-        c = self.coeffs
-        coords = jnp.broadcast_arrays(*[jnp.asarray(x, c.dtype) for x in coords])
+        c, dt = self.coeffs, self.dtype
+        coords = jnp.broadcast_arrays(*[jnp.asarray(x, dt) for x in coords])
         shape = coords[0].shape
         iw = [
             _weights(x, lo, st, n, self.order)
@@ -227,7 +235,7 @@ class Spline(eqx.Module):
         base = functools.reduce(
             lambda a, b: a + b, [i * s for (i, _), s in zip(iw, strides, strict=True)]
         )
-        outs = [jnp.zeros(shape, c.dtype) for _ in range(rows.shape[0])]
+        outs = [jnp.zeros(shape, dt) for _ in range(rows.shape[0])]
         for ks in itertools.product(range(self.width), repeat=self.ndim):
             offset = sum(k * s for k, s in zip(ks, strides, strict=True))
             idx = base + offset
@@ -235,7 +243,7 @@ class Spline(eqx.Module):
                 lambda a, b: a * b, [w[..., k] for (_, w), k in zip(iw, ks, strict=True)]
             )
             outs = [
-                o + w * row.at[idx].get(mode="promise_in_bounds")
+                o + w * row.at[idx].get(mode="promise_in_bounds").astype(dt)
                 for o, row in zip(outs, rows, strict=True)
             ]
         if not comp:
@@ -370,10 +378,22 @@ _SPLINES: dict[tuple, Spline] = {}
 _SETTINGS: tuple[int, int] = (3, 1)
 
 
+#: Tables whose main spline keeps float32 coefficients also for float64 code (it computes in
+#: float64: :attr:`Spline.compute`). The convolution table's coefficients (5.7 M) are constants
+#: of every compiled function that slices it; in float64 they made each such function's
+#: compiled code and its persistent-cache entry ≈ 48 MB and cost seconds of compilation per
+#: function. Its grid values are float32 in the file already, so the coefficients' float32
+#: rounding (≈ 6e-8 relative) is far below the table's interpolation error (≈ 1e-4).
+STORED_FLOAT32 = frozenset({"convolution"})
+
+
 def _build(name: str, dtype: np.dtype, extra, n_axes, order: int, stride: int) -> Spline:
     table = load_table(name)
     if extra is None:
-        return (table.subsample(stride) if stride > 1 else table).spline(dtype, order)
+        sp = (table.subsample(stride) if stride > 1 else table).spline(dtype, order)
+        if name in STORED_FLOAT32 and dtype == np.float64:
+            sp = Spline(sp.coeffs.astype(jnp.float32), sp.lo, sp.step, sp.n, sp.order, "float64")
+        return sp
     if extra not in table.extras:
         raise KeyError(f"table {name!r} has no extra array {extra!r} (has {sorted(table.extras)})")
     axes = table.axes[:n_axes]
