@@ -182,13 +182,19 @@ class Spline(eqx.Module):
         The contraction is exact: the result interpolates the same function restricted to the slice.
         """
         c, dt = self.coeffs, self.dtype
-        for k, x in enumerate(coords):
-            i, w = _weights(jnp.asarray(x, dt), self.lo[k], self.step[k], self.n[k], self.order)
-            # Only the block the slice reads is widened to the compute dtype.
-            block = jax.lax.dynamic_slice_in_dim(c, i, self.width, axis=0).astype(dt)
-            c = jnp.tensordot(w.astype(dt), block, axes=(0, 0))
         m = len(coords)
-        return Spline(c.astype(dt), self.lo[m:], self.step[m:], self.n[m:], self.order)
+        iw = [
+            _weights(jnp.asarray(x, dt), self.lo[k], self.step[k], self.n[k], self.order)
+            for k, x in enumerate(coords)
+        ]
+        # One read of the width^m block the slice needs (slicing one axis at a time read, for
+        # the convolution table, 4 whole (p, c, u, t) sub-tables first: 0.93 ms a slice against
+        # 0.10 ms), widened to the compute dtype, then contracted axis by axis.
+        starts = [i for i, _ in iw] + [jnp.int32(0)] * (c.ndim - m)
+        block = jax.lax.dynamic_slice(c, starts, (self.width,) * m + c.shape[m:]).astype(dt)
+        for _, w in iw:
+            block = jnp.tensordot(w.astype(dt), block, axes=(0, 0))
+        return Spline(block, self.lo[m:], self.step[m:], self.n[m:], self.order)
 
     def call_shared_first(self, x0, x1):
         """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
