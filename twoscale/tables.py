@@ -27,8 +27,8 @@ resolution studies).
 (coefficients solved in NumPy float64, then cast to the *canonical* dtype, i.e. float64 becomes
 float32 unless ``jax_enable_x64`` is on, so the key is the dtype the arrays really have) and kept
 in one registry (the tables of :data:`STORED_FLOAT32` keep float32 coefficients and compute in
-float64: :attr:`Spline.compute`). ``extra`` names a further array of the same file that a kernel interpolates over
-the table's leading axes (the convolution table's angle map and ``log k``). :func:`clear_caches`
+float64: :attr:`Spline.compute`). ``extra`` names a further array of the same file that a
+kernel interpolates over the table's leading axes (the convolution table's angle map and ``log k``). :func:`clear_caches`
 empties the registry and the :func:`load_table` cache; :func:`cached_splines` lists what is
 built. :func:`interpolation` is a study hook (``python -m benchmarks.run``): while active, the
 tables' main splines are built with another order and/or on a subsampled grid.
@@ -189,7 +189,7 @@ class Spline(eqx.Module):
         ]
         # One read of the width^m block the slice needs (slicing one axis at a time read, for
         # the convolution table, 4 whole (p, c, u, t) sub-tables first: 0.93 ms a slice against
-        # 0.10 ms), widened to the compute dtype, then contracted axis by axis.
+        # 0.15 ms), widened to the compute dtype, then contracted axis by axis.
         starts = [i for i, _ in iw] + [jnp.int32(0)] * (c.ndim - m)
         block = jax.lax.dynamic_slice(c, starts, (self.width,) * m + c.shape[m:]).astype(dt)
         for _, w in iw:
