@@ -28,8 +28,8 @@ resolution studies).
 float32 unless ``jax_enable_x64`` is on, so the key is the dtype the arrays really have) and kept
 in one registry (the tables of :data:`STORED_FLOAT32` keep float32 coefficients and compute in
 float64: :attr:`Spline.compute`). ``extra`` names a further array of the same file that a
-kernel interpolates over the table's leading axes (the convolution table's angle map and ``log k``). :func:`clear_caches`
-empties the registry and the :func:`load_table` cache; :func:`cached_splines` lists what is
+kernel interpolates over the table's leading axes (the convolution table's angle map and
+``log k``). :func:`clear_caches` empties the registry and the :func:`load_table` cache; :func:`cached_splines` lists what is
 built. :func:`interpolation` is a study hook (``python -m benchmarks.run``): while active, the
 tables' main splines are built with another order and/or on a subsampled grid.
 
@@ -396,10 +396,11 @@ STORED_FLOAT32 = frozenset({"convolution"})
 def _build(name: str, dtype: np.dtype, extra, n_axes, order: int, stride: int) -> Spline:
     table = load_table(name)
     if extra is None:
-        sp = (table.subsample(stride) if stride > 1 else table).spline(dtype, order)
-        if name in STORED_FLOAT32 and dtype == np.float64:
-            sp = Spline(sp.coeffs.astype(jnp.float32), sp.lo, sp.step, sp.n, sp.order, "float64")
-        return sp
+        src = table.subsample(stride) if stride > 1 else table
+        if name in STORED_FLOAT32 and dtype == np.float64:  # float32 straight from the solve
+            sp = src.spline(np.float32, order)
+            return Spline(sp.coeffs, sp.lo, sp.step, sp.n, sp.order, "float64")
+        return src.spline(dtype, order)
     if extra not in table.extras:
         raise KeyError(f"table {name!r} has no extra array {extra!r} (has {sorted(table.extras)})")
     axes = table.axes[:n_axes]
