@@ -192,7 +192,7 @@ def _baseline_config(dist: str, apparatus: bool = True):
         raise RuntimeError(
             "this twoscale's CookTorranceConfig has no apparatus field: run with --no-apparatus"
         )
-    return CookTorranceConfig(dist, apparatus=True)
+    return CookTorranceConfig(dist, apparatus=True, apparatus_knee=True)
 
 
 def _cell_rmse(pred: np.ndarray, cells) -> dict:

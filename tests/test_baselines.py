@@ -105,6 +105,44 @@ def test_unconstrained_roundtrip_and_range():
         assert np.all((np.asarray(e.f0) >= 0) & (np.asarray(e.f0) <= 1))
 
 
+def test_apparatus_knee_parameter():
+    """``apparatus_knee`` adds the knee exponent m (range [1, 20], log-scaled) next to e; m = 2
+    gives the paper's factor, which the plain ``apparatus`` switch uses; m round-trips through
+    the unconstrained map and the record."""
+    from twoscale.baselines import M_RANGE
+
+    plain, knee = (
+        CookTorranceConfig(apparatus=True),
+        CookTorranceConfig(apparatus=True, apparatus_knee=True),
+    )
+    assert plain.param_names == ("alpha", "f0", "rho_d", "e")
+    assert knee.param_names == ("alpha", "f0", "rho_d", "e", "m")
+    assert CookTorranceConfig(apparatus_knee=True).param_names == ("alpha", "f0", "rho_d")
+    assert CookTorranceConfig.from_dict(knee.to_dict()) == knee
+    assert CookTorranceConfig.from_dict({"distribution": "ggx", "apparatus": True}) == plain
+    wi = jnp.asarray([np.sin(1.4), 0.0, np.cos(1.4)])
+    wo = jnp.asarray([-np.sin(1.38), 0.05, np.cos(1.38)])
+    p2 = CookTorranceParams(0.2, 0.5, 0.1, e=0.9, m=2.0)
+    np.testing.assert_allclose(
+        cook_torrance(p2, wi, wo, knee),
+        cook_torrance(CookTorranceParams(0.2, 0.5, 0.1, e=0.9), wi, wo, plain),
+        rtol=1e-12,
+    )
+    p8 = CookTorranceParams(0.2, 0.5, 0.1, e=0.9, m=8.0)
+    assert np.all(
+        np.asarray(cook_torrance(p8, wi, wo, knee)) > np.asarray(cook_torrance(p2, wi, wo, knee))
+    )
+    with pytest.raises(ValueError, match="needs the parameter m"):
+        cook_torrance(CookTorranceParams(0.2, 0.5, 0.1, e=0.9), wi, wo, knee)
+    q = CookTorranceParams.from_unconstrained(p8.to_unconstrained())
+    np.testing.assert_allclose(q.m, 8.0, rtol=1e-12)
+    assert CookTorranceParams.from_dict(p8.to_dict()).to_dict() == p8.to_dict()
+    for u in (-60.0, 60.0):
+        far = CookTorranceParams(p8.alpha, p8.f0, p8.rho_d, p8.e, jnp.asarray(u))
+        m = float(CookTorranceParams.from_unconstrained(far).m)
+        assert M_RANGE[0] <= m <= M_RANGE[1]
+
+
 def test_gradients_finite_at_normal_incidence():
     cfg = CookTorranceConfig("beckmann")
     n = jnp.array([0.0, 0.0, 1.0])

@@ -348,6 +348,12 @@ def test_merl_protocol_default_is_apparatus():
     auto = resolve_configs(None, None)
     assert [c.material for c in auto] == ["conductor", "plastic"]
     assert all(c.apparatus and not c.diffuse_fresnel for c in auto)
+    # The knee exponent m of L(θ) = [1 − (2θ/π)^m]^e is fitted with e by default; the bare
+    # apparatus switch keeps the paper's m = 2 (no parameter), and no apparatus means neither.
+    assert all(c.apparatus_knee and {"e", "m"} <= set(c.param_names) for c in auto)
+    assert "m" not in ModelConfig(apparatus=True).param_names
+    assert "m" not in merl_protocol(apparatus_knee=False).param_names
+    assert not {"e", "m"} & set(merl_protocol(apparatus=False).param_names)
     assert all(c == merl_protocol() for c in resolve_configs(None, "conductor"))
     assert all(c.apparatus for c in resolve_configs("auto", "plastic"))
     assert not any(c.apparatus for c in resolve_configs(ModelConfig(), "auto"))

@@ -41,6 +41,8 @@ __all__ = [
 ALPHA_RANGE = (1e-3, 2.0)
 #: Upper bound of the apparatus exponent: the two-scale model's (one range for both models).
 E_MAX = bounds_for("e", None).hi
+#: Range of the apparatus knee exponent (the two-scale model's; log-scaled sigmoid).
+M_RANGE = (bounds_for("m", None).lo, bounds_for("m", None).hi)
 _DISTRIBUTIONS = ("ggx", "beckmann")
 
 
@@ -50,19 +52,29 @@ class CookTorranceConfig:
 
     Fields:
         distribution: the microfacet distribution, ``"ggx"`` or ``"beckmann"``.
-        apparatus: multiply the specular term by MERL's ``L(θ_i) L(θ_o)`` (adds ``e``).
+        apparatus: multiply the specular term by MERL's ``L(θ_i) L(θ_o)``,
+            ``L(θ) = [1 − (2θ/π)^m]^e`` (adds ``e``; m = 2).
+        apparatus_knee: with ``apparatus``, also fit the knee exponent ``m`` (adds ``m``), as
+            the two-scale model's MERL protocol does.
     """
 
     distribution: str = "ggx"
     apparatus: bool = False
+    apparatus_knee: bool = False
 
     def __post_init__(self):
         if self.distribution not in _DISTRIBUTIONS:
             raise ValueError(
                 f"distribution must be one of {_DISTRIBUTIONS}, got {self.distribution!r}"
             )
-        if not isinstance(self.apparatus, bool):
-            raise ValueError(f"apparatus must be a bool, got {self.apparatus!r}")
+        for name in ("apparatus", "apparatus_knee"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+
+    @property
+    def fits_knee(self) -> bool:
+        """The knee exponent ``m`` is a parameter (``apparatus`` and ``apparatus_knee``)."""
+        return self.apparatus and self.apparatus_knee
 
     @property
     def name(self) -> str:
@@ -74,15 +86,24 @@ class CookTorranceConfig:
 
     @property
     def param_names(self) -> tuple[str, ...]:
-        return ("alpha", "f0", "rho_d", "e") if self.apparatus else ("alpha", "f0", "rho_d")
+        names = ("alpha", "f0", "rho_d")
+        if self.apparatus:
+            names += ("e", "m") if self.apparatus_knee else ("e",)
+        return names
 
     def to_dict(self) -> dict:
-        return {"distribution": self.distribution, "apparatus": self.apparatus}
+        return {
+            "distribution": self.distribution,
+            "apparatus": self.apparatus,
+            "apparatus_knee": self.apparatus_knee,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> CookTorranceConfig:
         return cls(
-            distribution=d.get("distribution", "ggx"), apparatus=bool(d.get("apparatus", False))
+            distribution=d.get("distribution", "ggx"),
+            apparatus=bool(d.get("apparatus", False)),
+            apparatus_knee=bool(d.get("apparatus_knee", False)),
         )
 
 
@@ -103,38 +124,51 @@ class CookTorranceParams(eqx.Module):
     | ``f0`` | F0 | — | (0, 1) per channel (3,) |
     | ``rho_d`` | ρ_d | — | (0, 1) per channel (3,) |
     | ``e`` | e | — | [0, 5] (shape ()), apparatus exponent; None without the apparatus factor |
+    | ``m`` | m | — | [1, 20] (shape ()), apparatus knee exponent; None: m = 2 |
     """
 
     alpha: jax.Array
     f0: jax.Array
     rho_d: jax.Array
     e: jax.Array | None = None
+    m: jax.Array | None = None
 
-    def __init__(self, alpha, f0, rho_d, e=None):
+    def __init__(self, alpha, f0, rho_d, e=None, m=None):
         self.alpha = jnp.asarray(alpha, dtype=jnp.result_type(float))
         self.f0 = jnp.broadcast_to(jnp.asarray(f0, dtype=jnp.result_type(float)), (3,))
         self.rho_d = jnp.broadcast_to(jnp.asarray(rho_d, dtype=jnp.result_type(float)), (3,))
         self.e = None if e is None else jnp.asarray(e, dtype=jnp.result_type(float))
+        self.m = None if m is None else jnp.asarray(m, dtype=jnp.result_type(float))
 
     def to_unconstrained(self) -> CookTorranceParams:
-        """Map to unconstrained values: α by a log-scaled logit, F0, ρ_d and e/5 by logit."""
-        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
-        t = (jnp.log(self.alpha) - lo) / (hi - lo)
+        """Map to unconstrained values: α and m by a log-scaled logit, F0, ρ_d and e/5 by logit."""
         eps = 1e-12  # keep the logit finite for values on the boundary
+
+        def log_logit(x, rng):
+            lo, hi = math.log(rng[0]), math.log(rng[1])
+            return _logit(jnp.clip((jnp.log(x) - lo) / (hi - lo), eps, 1 - eps))
+
         return CookTorranceParams(
-            _logit(jnp.clip(t, eps, 1 - eps)),
+            log_logit(self.alpha, ALPHA_RANGE),
             _logit(jnp.clip(self.f0, eps, 1 - eps)),
             _logit(jnp.clip(self.rho_d, eps, 1 - eps)),
             None if self.e is None else _logit(jnp.clip(self.e / E_MAX, eps, 1 - eps)),
+            None if self.m is None else log_logit(self.m, M_RANGE),
         )
 
     @staticmethod
     def from_unconstrained(u: CookTorranceParams) -> CookTorranceParams:
         """Inverse of :meth:`to_unconstrained`; every real input maps inside the valid range."""
-        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
-        alpha = jnp.exp(lo + (hi - lo) * _sigmoid(u.alpha))
+
+        def log_sigmoid(x, rng):
+            lo, hi = math.log(rng[0]), math.log(rng[1])
+            return jnp.exp(lo + (hi - lo) * _sigmoid(x))
+
         e = None if u.e is None else E_MAX * _sigmoid(u.e)
-        return CookTorranceParams(alpha, _sigmoid(u.f0), _sigmoid(u.rho_d), e)
+        m = None if u.m is None else log_sigmoid(u.m, M_RANGE)
+        return CookTorranceParams(
+            log_sigmoid(u.alpha, ALPHA_RANGE), _sigmoid(u.f0), _sigmoid(u.rho_d), e, m
+        )
 
     def to_dict(self) -> dict:
         out = {
@@ -144,11 +178,13 @@ class CookTorranceParams(eqx.Module):
         }
         if self.e is not None:
             out["e"] = float(self.e)
+        if self.m is not None:
+            out["m"] = float(self.m)
         return out
 
     @classmethod
     def from_dict(cls, d: dict) -> CookTorranceParams:
-        return cls(d["alpha"], d["f0"], d["rho_d"], d.get("e"))
+        return cls(d["alpha"], d["f0"], d["rho_d"], d.get("e"), d.get("m"))
 
 
 def _lambda_ggx(tan2, alpha):
@@ -208,7 +244,10 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
     if config.apparatus:
         if params.e is None:
             raise ValueError("CookTorranceConfig(apparatus=True) needs the parameter e")
-        spec = spec * apparatus_factor(ci, params.e) * apparatus_factor(co, params.e)
+        if config.fits_knee and params.m is None:
+            raise ValueError("CookTorranceConfig(apparatus_knee=True) needs the parameter m")
+        m = params.m if config.fits_knee else 2.0
+        spec = spec * apparatus_factor(ci, params.e, m) * apparatus_factor(co, params.e, m)
     schlick = (1.0 - cos_d) ** 5
     f = params.f0 + (1.0 - params.f0) * schlick[..., None]
     rho = params.rho_d / jnp.pi + f * spec[..., None]

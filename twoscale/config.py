@@ -27,8 +27,9 @@ PATHS = ("tables", "exact")
 SPECTRAL_OUTPUTS = ("rgb", "spectrum")
 FRESNEL_FORMS = ("exact", "schlick")
 
-# Canonical order of the parameters (as in the paper's list, §4, plus the apparatus exponent).
-PARAM_ORDER = ("beta", "p", "sigma_s", "b", "c", "eta", "k", "rho_d", "e")
+# Canonical order of the parameters (as in the paper's list, §4, plus the apparatus factor's
+# exponent e and knee exponent m).
+PARAM_ORDER = ("beta", "p", "sigma_s", "b", "c", "eta", "k", "rho_d", "e", "m")
 
 
 def _choice(name: str, value, options) -> None:
@@ -51,7 +52,11 @@ class ModelConfig:
             (energy-conserving switch) or ``"full"`` (§3.7).
         shadowing: ``"correlated"`` (height-direction correlated Smith with van Ginneken's factor,
             φ wrapped into [0, π]; reference) or ``"uncorrelated"`` (``G1(i) G1(o)``).
-        apparatus: multiply the specular lobe by MERL's ``L(θ_i) L(θ_o)`` (§3.11); adds ``e``.
+        apparatus: multiply the specular lobe by MERL's ``L(θ_i) L(θ_o)``,
+            ``L(θ) = [1 − (2θ/π)^m]^e`` (§3.11); adds ``e`` (m = 2, the paper's form).
+        apparatus_knee: with ``apparatus``, also fit the knee exponent ``m`` of ``L`` (adds ``m``;
+            the MERL protocol's default, :func:`twoscale.fit.merl_protocol`). Ignored without
+            ``apparatus``.
         diffuse_eta2: divide the plastic diffuse layer by ``η̄²`` (radiance compression at the
             varnish, as in Weidlich-Wilkie style layered models). Off (default) is the reference's
             §3.9 form, which has no ``1/η²`` and whose albedo exceeds 1 for bright layers
@@ -87,6 +92,7 @@ class ModelConfig:
     q_mode: str = "2F"
     shadowing: str = "correlated"
     apparatus: bool = False
+    apparatus_knee: bool = False
     diffuse_eta2: bool = False
     diffuse_fresnel: bool = True
     fresnel: str = "exact"
@@ -117,6 +123,7 @@ class ModelConfig:
             "diffraction",
             "diffuse",
             "apparatus",
+            "apparatus_knee",
             "diffuse_eta2",
             "diffuse_fresnel",
         ):
@@ -194,4 +201,6 @@ class ModelConfig:
             used.add("rho_d")
         if self.apparatus and self.specular:
             used.add("e")
+            if self.apparatus_knee:
+                used.add("m")
         return tuple(n for n in PARAM_ORDER if n in used)

@@ -105,15 +105,17 @@ def polarisation_q(cos_i, cos_o, phi, eta, k):
     return q.astype(dtype)
 
 
-def apparatus_factor(cos_theta, e):
-    """MERL apparatus factor ``L(θ) = [1 − (2θ/π)²]^e``, θ in radians [docs/model.md §3.11].
+def apparatus_factor(cos_theta, e, m=2.0):
+    """MERL apparatus factor ``L(θ) = [1 − (2θ/π)^m]^e``, θ in radians [docs/model.md §3.11].
 
-    ``θ = atan2(sin θ, cos θ)`` (finite slope at normal incidence, unlike ``acos``); the base is
-    positive above the horizon, and at or below it ``L`` is 0.
+    ``m = 2`` is the paper's form; a larger knee exponent ``m`` keeps ``L`` near 1 to a later
+    angle and makes it fall faster beyond. ``θ = atan2(sin θ, cos θ)`` (finite slope at normal
+    incidence, unlike ``acos``); ``1 − x^m = −expm1(m log x)`` keeps the base accurate near
+    grazing, where it is small; it is positive above the horizon, and at or below it ``L`` is 0.
     """
     c = jnp.clip(cos_theta, 0.0, 1.0)
     theta = jnp.arctan2(safe_sqrt((1.0 - c) * (1.0 + c)), c)
-    base = (1.0 - 2.0 * theta / math.pi) * (1.0 + 2.0 * theta / math.pi)
+    base = -jnp.expm1(m * safe_log(2.0 * theta / math.pi))
     return jnp.where(base > 0.0, jnp.exp(e * safe_log(base)), 0.0)
 
 
@@ -390,8 +392,8 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) ->
         # cos θ_i cos θ_o > 0 above the horizon; the floor only guards underflow.
         spec = g / jnp.maximum(4.0 * cos_i * cos_o, tiny(ch.dtype))
         if cfg.apparatus:
-            e = ch.par["e"]
-            spec = spec * apparatus_factor(cos_i, e) * apparatus_factor(cos_o, e)
+            e, m = ch.par["e"], ch.par.get("m", 2.0)
+            spec = spec * apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
         out["specular"] = hd["specular"] * _chan(ch, spec)
     if cfg.has_diffuse:
         eta_bar = _eta_bar(ch, cfg) if ch.eta_bar is None else ch.eta_bar

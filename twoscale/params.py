@@ -13,16 +13,17 @@ eta        η       —     conductor [0.01, 6]; dielectric [1, 4]      index, r
 k          k       —     [0, 10]                                     extinction (conductors), per channel
 rho_d      ρ_d     —     [0, 1]                                      diffuse albedo (dielectrics), §3.9
 e          e       —     [0, 5]                                      MERL apparatus exponent, §3.11
+m          m       —     [1, 20]                                     MERL apparatus knee exponent
 =========  ======  ====  ==========================================  ================================
 
-``beta, p, sigma_s, b, c, e`` are scalars shared by all channels; ``eta, k, rho_d`` hold one value
+``beta, p, sigma_s, b, c, e, m`` are scalars shared by all channels; ``eta, k, rho_d`` hold one value
 per channel. Per-channel fields may hold 3 values (at the RGB wavelengths 0.645, 0.526, 0.444 µm),
 one value per wavelength of a spectral configuration, or a single value for all channels; with 3
 values and a spectral configuration they are upsampled to the wavelengths with
 ``twoscale.spectral.upsample_rgb`` (see :meth:`TwoScaleParams.channels`).
 
 Unconstrained space: every bounded field maps through a scaled sigmoid, in log space where the
-parameter is a scale (β, p, c − 1, b, conductor η), linearly otherwise (σ_s, k, ρ_d, e, dielectric
+parameter is a scale (β, p, c − 1, b, conductor η, m), linearly otherwise (σ_s, k, ρ_d, e, dielectric
 η). Every real vector maps inside the closed valid range above (results are clipped to the range
 so that float32 rounding never leaves it), and the ranges lie inside the table domains, so the
 optimiser never sees a clamped, zero-gradient table edge. ``σ_s = 0``, ``k = 0`` and ``ρ_d = 0`` are
@@ -45,7 +46,7 @@ from twoscale.config import MATERIALS, PARAM_ORDER, ModelConfig
 
 __all__ = ["TwoScaleParams", "Bound", "bounds_for"]
 
-SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e")
+SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e", "m")
 CHANNEL_FIELDS = ("eta", "k", "rho_d")
 _U_MAX = 40.0  # |u| of a value on a bound: sigmoid(−40) ≈ 4e-18
 _T_MAX = 1.0 / (1.0 + math.exp(-_U_MAX))  # σ(40) (1.0 in float64)
@@ -125,6 +126,9 @@ _BOUNDS = {
     "k": Bound(0.0, 10.0),
     "rho_d": Bound(0.0, 1.0),
     "e": Bound(0.0, 5.0),
+    # m = 2 is the paper's L(θ) = [1 − (2θ/π)²]^e; larger m keeps L near 1 to a later angle
+    # and drops it faster beyond (docs/model.md §3.11).
+    "m": Bound(1.0, 20.0, "log"),
 }
 _ETA_CONDUCTOR = Bound(0.01, 6.0, "log")
 _ETA_DIELECTRIC = Bound(1.0, 4.0)
@@ -139,6 +143,7 @@ _DESCRIPTION = {
     "k": "extinction coefficient k",
     "rho_d": "diffuse albedo ρ_d",
     "e": "apparatus exponent e",
+    "m": "apparatus knee exponent m",
 }
 
 
@@ -170,23 +175,24 @@ class TwoScaleParams(eqx.Module):
     k: jax.Array | None = eqx.field(default=None, converter=_arr)
     rho_d: jax.Array | None = eqx.field(default=None, converter=_arr)
     e: jax.Array | None = eqx.field(default=None, converter=_arr)
+    m: jax.Array | None = eqx.field(default=None, converter=_arr)
     material: str | None = eqx.field(default=None, static=True)
 
     # ----------------------------------------------------------------------------- constructors
     @classmethod
-    def conductor(cls, beta, p, eta, k, sigma_s=None, b=None, c=None, e=None):
+    def conductor(cls, beta, p, eta, k, sigma_s=None, b=None, c=None, e=None, m=None):
         """A conductor: complex index ``η + ik`` per channel, no diffuse layer."""
-        return cls(beta, p, sigma_s, b, c, eta, k, None, e, material="conductor")
+        return cls(beta, p, sigma_s, b, c, eta, k, None, e, m, material="conductor")
 
     @classmethod
-    def plastic(cls, beta, p, eta, rho_d, sigma_s=None, b=None, c=None, e=None):
+    def plastic(cls, beta, p, eta, rho_d, sigma_s=None, b=None, c=None, e=None, m=None):
         """A dielectric varnish (real η) over a Lambertian layer of albedo ``ρ_d`` (§3.9)."""
-        return cls(beta, p, sigma_s, b, c, eta, None, rho_d, e, material="plastic")
+        return cls(beta, p, sigma_s, b, c, eta, None, rho_d, e, m, material="plastic")
 
     @classmethod
-    def subsurface(cls, beta, p, eta, rho_d, sigma_s=None, b=None, c=None, e=None):
+    def subsurface(cls, beta, p, eta, rho_d, sigma_s=None, b=None, c=None, e=None, m=None):
         """A dielectric with a subsurface-scattering layer of albedo ``ρ_d`` (§3.9)."""
-        return cls(beta, p, sigma_s, b, c, eta, None, rho_d, e, material="subsurface")
+        return cls(beta, p, sigma_s, b, c, eta, None, rho_d, e, m, material="subsurface")
 
     # ----------------------------------------------------------------------------- helpers
     @property

@@ -2,14 +2,14 @@
 
     python -m twoscale.fit material.binary [--out DIR] [--metric blend|log|scaled-log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
-        [--full] [--no-apparatus] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
+        [--full] [--no-apparatus] [--no-apparatus-knee] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
         [--no-compile-cache] [--no-albedo] [--render]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
-MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)²]^e``, on the
-specular lobe, with ``e`` fitted (MERL's measured values fall off at grazing angles; without it
-the model is forced to fit that fall-off with its shape parameters). ``--no-apparatus`` fits the
-bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
+MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the
+specular lobe, with ``e`` and ``m`` fitted (MERL's measured values fall off at grazing angles;
+without it the model is forced to fit that fall-off with its shape parameters).
+``--no-apparatus-knee`` keeps the paper's ``m = 2``; ``--no-apparatus`` fits the bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
 (``ρ_d/π``, :func:`twoscale.fit.merl_protocol` says why); ``--diffuse-fresnel`` uses the
 reference's varnish-transmitted body instead. A dielectric coat's Fresnel reflectance takes the
 form that fits the data better, the exact equations or Schlick's form (``--fresnel auto``: first
@@ -122,6 +122,13 @@ def _parser() -> argparse.ArgumentParser:
         default=True,
         help="MERL's grazing fall-off L(θ_i) L(θ_o) on the specular lobe, exponent e fitted "
         "(default: on; --no-apparatus for the bare model)",
+    )
+    ap.add_argument(
+        "--apparatus-knee",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with --apparatus, also fit the knee exponent m of L(θ) = [1 − (2θ/π)^m]^e "
+        "(default: on; --no-apparatus-knee keeps the paper's m = 2)",
     )
     ap.add_argument(
         "--diffuse-fresnel",
@@ -384,11 +391,14 @@ def _run(args, log) -> int:
 
     material = None if args.baseline else args.material_type
     if args.baseline:
-        config = CookTorranceConfig(args.baseline, apparatus=args.apparatus)
+        config = CookTorranceConfig(
+            args.baseline, apparatus=args.apparatus, apparatus_knee=args.apparatus_knee
+        )
     else:
         config = merl_protocol(
             diffraction=not args.no_diffraction,
             apparatus=args.apparatus,
+            apparatus_knee=args.apparatus_knee,
             diffuse_fresnel=args.diffuse_fresnel,
         )
     if args.example and args.material_type == "auto":

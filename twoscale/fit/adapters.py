@@ -40,6 +40,8 @@ START_A_SPEC = (0.3, 0.7)
 START_B = 1.0
 #: Start value of MERL's apparatus exponent (fits of the stand-ins end near 0.5–1).
 START_E = 0.5
+#: Start value of the apparatus knee exponent: the paper's form, L(θ) = [1 − (2θ/π)²]^e.
+START_M = 2.0
 
 #: Largest extinction coefficient of a conductor start (k's range ends at 10; F0 = 0.944 at
 #: η = 1.2). A brighter measured peak asks for k beyond the range; capping it here keeps the
@@ -169,7 +171,8 @@ class CookTorranceAdapter(AbstractAdapter):
             d0 = 1.0 / (math.pi * alpha * alpha)
             f0 = np.clip(4.0 * np.maximum(stats.peak - stats.floor, 0.0) / d0, 0.01, 0.98)
             e = START_E if self.config.apparatus else None
-            out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d, e)))
+            m = START_M if self.config.fits_knee else None
+            out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d, e, m)))
         return out
 
 
@@ -310,6 +313,8 @@ class TwoScaleAdapter(AbstractAdapter):
                 label += f" c={c:g} A_spec(0)={a_spec:g}"
             if cfg.apparatus:
                 extra["e"] = START_E
+                if cfg.apparatus_knee:
+                    extra["m"] = START_M
             if cfg.material == "conductor":
                 eta = np.full(3, 1.2)
                 k = np.minimum(conductor_k_for_f0(f0, 1.2), START_K_MAX)

@@ -116,7 +116,7 @@ def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str,
 #: apparatus exponent. A type's own parameters (a conductor's η and k, a plastic's η and ρ_d)
 #: set the lobes' amplitudes and colour, which a solver moves easily; the geometry sets the
 #: basin (:func:`cross_seed`).
-SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e")
+SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e", "m")
 
 
 def cross_seed(src: Candidate, g_src: Group, dst: Candidate, g_dst: Group) -> Candidate | None:

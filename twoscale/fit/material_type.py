@@ -18,14 +18,24 @@ MATERIALS = ("conductor", "plastic", "subsurface")
 AUTO_MATERIALS = ("conductor", "plastic")
 
 
-def merl_protocol(*, diffraction: bool = True, apparatus: bool = True, diffuse_fresnel=False):
+def merl_protocol(
+    *,
+    diffraction: bool = True,
+    apparatus: bool = True,
+    diffuse_fresnel=False,
+    apparatus_knee: bool | None = None,
+):
     """The model configuration the fitter uses for MERL data unless told otherwise.
 
-    ``ModelConfig(apparatus=True, diffuse_fresnel=False)`` (material chosen by the fit):
+    ``ModelConfig(apparatus=True, apparatus_knee=True, diffuse_fresnel=False)`` (material chosen
+    by the fit):
 
-    - MERL's apparatus factor on the specular lobe, its exponent ``e`` fitted (docs/model.md
-      §3.11): MERL's values fall off at grazing angles, and without it the shape parameters
-      are bent to fit that fall-off;
+    - MERL's apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the specular
+      lobe, its exponent ``e`` and knee exponent ``m`` fitted (docs/model.md §3.11): MERL's
+      values fall off at grazing angles, and without it the shape parameters are bent to fit
+      that fall-off. The knee (``apparatus_knee``, default: as ``apparatus``) lets the fall-off
+      start late and be steep, as the stand-ins' peaks show: they follow the bare model up to
+      θ_d ≈ 80° and drop by a factor 50–200 from 84° to 89° (``campaigns/RESULTS.md``);
     - a plastic's body Lambertian (§3.9): MERL's plastics and fabrics do not darken towards
       grazing angles as the varnish's Fresnel transmission makes the reference body do. On the
       Neural-BRDF stand-ins tried (plastic fits of yellow-plastic, red-fabric2, pink-plastic,
@@ -35,8 +45,12 @@ def merl_protocol(*, diffraction: bool = True, apparatus: bool = True, diffuse_f
     """
     from twoscale.config import ModelConfig
 
+    knee = apparatus if apparatus_knee is None else apparatus_knee
     return ModelConfig(
-        diffraction=diffraction, apparatus=apparatus, diffuse_fresnel=diffuse_fresnel
+        diffraction=diffraction,
+        apparatus=apparatus,
+        apparatus_knee=knee,
+        diffuse_fresnel=diffuse_fresnel,
     )
 
 
