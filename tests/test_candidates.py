@@ -17,15 +17,15 @@ from twoscale.fit.starts import DataStats
 from twoscale.params import bounds_for
 
 CONDUCTOR = TwoScaleParams.conductor(
-    0.05, 0.8, (1.2, 1.3, 1.4), (2.0, 2.5, 3.0), sigma_s=0.05, b=2.0, c=1.5, e=0.7
+    0.05, 0.8, (1.2, 1.3, 1.4), (2.0, 2.5, 3.0), sigma_s=0.05, b=2.0, c=1.5, e=0.7, m=3.0
 )
 PLASTIC = TwoScaleParams.plastic(
-    0.3, 2.0, (1.5, 1.6, 1.7), (0.1, 0.2, 0.3), sigma_s=0.2, b=30.0, c=3.0, e=1.5
+    0.3, 2.0, (1.5, 1.6, 1.7), (0.1, 0.2, 0.3), sigma_s=0.2, b=30.0, c=3.0, e=1.5, m=6.0
 )
 
 
 def _setup(fixed=None):
-    cfg = ModelConfig(apparatus=True)
+    cfg = ModelConfig(apparatus=True, apparatus_knee=True)  # the MERL protocol's e and m
     configs = [dataclasses.replace(cfg, material=m) for m in ("conductor", "plastic")]
     return make_candidates(configs, [[("a", CONDUCTOR)], [("b", PLASTIC)]], fixed or {})
 

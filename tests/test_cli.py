@@ -277,15 +277,16 @@ def test_second_run_reuses_the_compilation_cache(files, tmp_path):
 
 
 @pytest.mark.parametrize(
-    ("flags", "apparatus", "diffuse_fresnel", "fresnel", "metric"),
+    ("flags", "apparatus", "knee", "diffuse_fresnel", "fresnel", "metric"),
     [
-        ([], True, False, "auto", "blend"),
-        (["--diffuse-fresnel", "--metric", "scaled-log"], True, True, "auto", "scaled-log"),
-        (["--no-apparatus", "--fresnel", "exact"], False, False, "exact", "blend"),
+        ([], True, True, False, "auto", "blend"),
+        (["--diffuse-fresnel", "--metric", "scaled-log"], True, True, True, "auto", "scaled-log"),
+        (["--no-apparatus-knee"], True, False, False, "auto", "blend"),
+        (["--no-apparatus", "--fresnel", "exact"], False, False, False, "exact", "blend"),
     ],
 )
 def test_cli_passes_the_merl_protocol(
-    files, tmp_path, monkeypatch, flags, apparatus, diffuse_fresnel, fresnel, metric
+    files, tmp_path, monkeypatch, flags, apparatus, knee, diffuse_fresnel, fresnel, metric
 ):
     """The two-scale fit gets :func:`twoscale.fit.merl_protocol` (apparatus factor, Lambertian
     body) and the blended log metric unless a flag says otherwise; the material type and a
@@ -307,7 +308,10 @@ def test_cli_passes_the_merl_protocol(
     monkeypatch.setattr(driver, "fit", spy)
     rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *flags])
     assert rc == EXIT_FIT
-    assert seen["config"] == merl_protocol(apparatus=apparatus, diffuse_fresnel=diffuse_fresnel)
+    assert seen["config"] == merl_protocol(
+        apparatus=apparatus, apparatus_knee=knee, diffuse_fresnel=diffuse_fresnel
+    )
+    assert seen["config"].apparatus_knee is knee
     assert seen["material"] == "auto"
     assert seen["fresnel"] == fresnel
     assert seen["metric"] == metric

@@ -59,6 +59,11 @@ def test_config_param_names_and_channels():
     assert ModelConfig(diffraction=False).param_names == ("beta", "p", "eta", "k")
     cfg = ModelConfig(material="plastic", apparatus=True)
     assert cfg.param_names == ("beta", "p", "sigma_s", "b", "c", "eta", "rho_d", "e")
+    knee = ModelConfig(material="plastic", apparatus=True, apparatus_knee=True)
+    assert knee.param_names == ("beta", "p", "sigma_s", "b", "c", "eta", "rho_d", "e", "m")
+    assert "m" not in ModelConfig(apparatus_knee=True).param_names  # no apparatus: no factor
+    with pytest.raises(ValueError, match="apparatus_knee"):
+        ModelConfig(apparatus=True, apparatus_knee=1)
     assert ModelConfig(material="subsurface", diffuse=False).param_names[-1] == "eta"
     assert ModelConfig(material="conductor", diffuse=True).has_diffuse is False
     diffuse_only = ModelConfig(material="plastic", specular=False, diffraction=False)

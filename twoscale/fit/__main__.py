@@ -392,7 +392,9 @@ def _run(args, log) -> int:
     material = None if args.baseline else args.material_type
     if args.baseline:
         config = CookTorranceConfig(
-            args.baseline, apparatus=args.apparatus, apparatus_knee=args.apparatus_knee
+            args.baseline,
+            apparatus=args.apparatus,
+            apparatus_knee=args.apparatus and args.apparatus_knee,
         )
     else:
         config = merl_protocol(

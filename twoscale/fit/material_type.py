@@ -45,7 +45,7 @@ def merl_protocol(
     """
     from twoscale.config import ModelConfig
 
-    knee = apparatus if apparatus_knee is None else apparatus_knee
+    knee = apparatus and (apparatus_knee is None or apparatus_knee)  # no factor, no knee
     return ModelConfig(
         diffraction=diffraction,
         apparatus=apparatus,
