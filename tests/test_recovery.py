@@ -17,21 +17,12 @@ import pytest
 
 from twoscale import ModelConfig, TwoScaleParams
 from twoscale.fit import fit, synthetic
+from twoscale.fit.synthetic import EXAMPLE
 
 # The default fit follows the MERL protocol (apparatus factor on): the default cases are made with
 # MERL's grazing fall-off (exponent e; the conductor's also with a knee exponent m ≠ 2, fitted as
 # the protocol does); the slow sets without it, fitted with the bare model.
-CONDUCTOR = TwoScaleParams.conductor(
-    beta=0.12,
-    p=1.4,
-    eta=(0.25, 0.55, 1.35),
-    k=(3.4, 2.4, 1.8),
-    sigma_s=0.012,
-    b=1.5,
-    c=2.2,
-    e=0.7,
-    m=4.0,
-)
+CONDUCTOR = TwoScaleParams.conductor(**{**EXAMPLE, "e": 0.7, "m": 4.0})  # the --example metal
 PLASTIC = TwoScaleParams.plastic(
     beta=0.08,
     p=0.8,
