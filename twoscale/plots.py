@@ -121,8 +121,14 @@ def merl_lookup(data, wi, wo):
     return np.where(ok[..., None], vals, 0.0), ok
 
 
-def plot_slices(data, model, path, *, theta_d_deg=(0, 20, 45, 70), phi_d_deg: int = 90, title=""):
-    """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log scale."""
+def plot_slices(
+    data, model, path, *, theta_d_deg=(0, 20, 45, 70, 85), phi_d_deg: int = 90, title=""
+):
+    """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log scale.
+
+    The last default slice, θ_d = 85°, is where MERL's grazing fall-off (the apparatus factor,
+    docs/model.md §3.11) shapes the mirror peak and where most of a fit's log error lives.
+    """
     from twoscale import merl
 
     fig, axes = _subplots(1, len(theta_d_deg), figsize=(4 * len(theta_d_deg), 3.6), sharey=True)
