@@ -391,7 +391,7 @@ def plot_gallery_tile(
     models: dict,
     path,
     *,
-    theta_d_deg=(5, 30, 60),
+    theta_d_deg=(5, 30, 60, 85),
     phi_d_deg: int = 90,
     sphere_size: int = 96,
     light_deg: float = 30.0,
