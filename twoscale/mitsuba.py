@@ -31,7 +31,7 @@ so). Gradients do not flow through the plugin (the NumPy copy detaches them).
 :func:`twoscale.fit.record.load_result`; its ``"albedo_table"``, when there, serves
 ``eval_diffuse_reflectance``. MERL's apparatus factor (``apparatus=True`` in the
 records of the MERL protocol) models the gonioreflectometer, not the material: the plugin switches
-it off (``apparatus=False``; the parameter ``e`` is then unused) unless the scene dict says
+it off (``apparatus=False``; the parameters ``e`` and ``m`` are then unused) unless the scene dict says
 ``"apparatus": True``.
 
 **LLVM.** Mitsuba's ``llvm_*`` variants load ``libLLVM`` at run time. :func:`register` sets

@@ -2,14 +2,16 @@
 
     python -m twoscale.fit material.binary [--out DIR] [--metric blend|log|scaled-log|linear]
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
-        [--full] [--no-apparatus] [--no-apparatus-knee] [--diffuse-fresnel] [--fresnel auto|exact|schlick]
+        [--full] [--no-apparatus] [--no-apparatus-knee] [--diffuse-fresnel]
+        [--fresnel auto|exact|schlick]
         [--no-compile-cache] [--no-albedo] [--render]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
 MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the
 specular lobe, with ``e`` and ``m`` fitted (MERL's measured values fall off at grazing angles;
 without it the model is forced to fit that fall-off with its shape parameters).
-``--no-apparatus-knee`` keeps the paper's ``m = 2``; ``--no-apparatus`` fits the bare model. The baselines (``--baseline``) follow the same switch. A plastic's body is Lambertian
+``--no-apparatus-knee`` keeps the paper's ``m = 2``; ``--no-apparatus`` fits the bare model.
+The baselines (``--baseline``) follow the same switches. A plastic's body is Lambertian
 (``ρ_d/π``, :func:`twoscale.fit.merl_protocol` says why); ``--diffuse-fresnel`` uses the
 reference's varnish-transmitted body instead. A dielectric coat's Fresnel reflectance takes the
 form that fits the data better, the exact equations or Schlick's form (``--fresnel auto``: first
