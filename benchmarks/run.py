@@ -761,13 +761,17 @@ def variants(sizes: Sizes) -> str:
     wi, wo = _grid(sizes.grid_stride)
     scale = N_GRID / wi.shape[0]
     full = twoscale.TwoScaleParams.plastic(
-        beta=0.1, p=1.5, eta=1.5, rho_d=(0.4, 0.2, 0.1), sigma_s=0.01, b=1.5, c=2.2, e=0.3
+        beta=0.1, p=1.5, eta=1.5, rho_d=(0.4, 0.2, 0.1), sigma_s=0.01, b=1.5, c=2.2, e=0.3, m=4.0
     )
     cases = (
         ("specular only", dict(material="plastic", diffuse=False, diffraction=False)),
         ("specular + diffuse", dict(material="plastic", diffraction=False)),
         ("+ diffraction", dict(material="plastic")),
         ("+ apparatus factor", dict(material="plastic", apparatus=True)),
+        (
+            "+ its knee (MERL protocol)",
+            dict(material="plastic", apparatus=True, apparatus_knee=True),
+        ),
     )
     rows = []
     for label, kw in cases:
@@ -810,7 +814,7 @@ def variants(sizes: Sizes) -> str:
         )
     return (
         "## Only what a scene requires\n\nPlastic material; each row switches one more lobe on "
-        "(`ModelConfig(diffuse=, diffraction=, apparatus=)`). Switched-off lobes are not traced "
+        "(`ModelConfig(diffuse=, diffraction=, apparatus=, apparatus_knee=)`). Switched-off lobes are not traced "
         "at all (static configuration): the jaxpr op count and the time show what each lobe costs. "
         f"Fit: `{sizes.preview_schedule}` schedule on a synthetic material of that variant (warm; first run in brackets).\n\n"
         + table(
