@@ -814,8 +814,9 @@ def variants(sizes: Sizes) -> str:
         )
     return (
         "## Only what a scene requires\n\nPlastic material; each row switches one more lobe on "
-        "(`ModelConfig(diffuse=, diffraction=, apparatus=, apparatus_knee=)`). Switched-off lobes are not traced "
-        "at all (static configuration): the jaxpr op count and the time show what each lobe costs. "
+        "(`ModelConfig(diffuse=, diffraction=, apparatus=, apparatus_knee=)`). Switched-off lobes "
+        "are not traced at all (static configuration): the jaxpr op count and the time show what "
+        "each lobe costs. "
         f"Fit: `{sizes.preview_schedule}` schedule on a synthetic material of that variant (warm; first run in brackets).\n\n"
         + table(
             [

@@ -109,7 +109,7 @@ def test_apparatus_knee_parameter():
     """``apparatus_knee`` adds the knee exponent m (range [1, 20], log-scaled) next to e; m = 2
     gives the paper's factor, which the plain ``apparatus`` switch uses; m round-trips through
     the unconstrained map and the record."""
-    from twoscale.baselines import M_RANGE
+    from twoscale.baselines import M_BOUND
 
     plain, knee = (
         CookTorranceConfig(apparatus=True),
@@ -140,7 +140,7 @@ def test_apparatus_knee_parameter():
     for u in (-60.0, 60.0):
         far = CookTorranceParams(p8.alpha, p8.f0, p8.rho_d, p8.e, jnp.asarray(u))
         m = float(CookTorranceParams.from_unconstrained(far).m)
-        assert M_RANGE[0] <= m <= M_RANGE[1]
+        assert M_BOUND.lo <= m <= M_BOUND.hi
 
 
 def test_gradients_finite_at_normal_incidence():

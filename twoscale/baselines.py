@@ -41,8 +41,8 @@ __all__ = [
 ALPHA_RANGE = (1e-3, 2.0)
 #: Upper bound of the apparatus exponent: the two-scale model's (one range for both models).
 E_MAX = bounds_for("e", None).hi
-#: Range of the apparatus knee exponent (the two-scale model's; log-scaled sigmoid).
-M_RANGE = (bounds_for("m", None).lo, bounds_for("m", None).hi)
+#: The apparatus knee exponent's range and map: the two-scale model's (log-scaled sigmoid).
+M_BOUND = bounds_for("m", None)
 _DISTRIBUTIONS = ("ggx", "beckmann")
 
 
@@ -141,34 +141,27 @@ class CookTorranceParams(eqx.Module):
         self.m = None if m is None else jnp.asarray(m, dtype=jnp.result_type(float))
 
     def to_unconstrained(self) -> CookTorranceParams:
-        """Map to unconstrained values: α and m by a log-scaled logit, F0, ρ_d and e/5 by logit."""
+        """Map to unconstrained values: α by a log-scaled logit, F0, ρ_d and e/5 by logit, m by
+        :data:`M_BOUND`'s map."""
+        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
+        t = (jnp.log(self.alpha) - lo) / (hi - lo)
         eps = 1e-12  # keep the logit finite for values on the boundary
-
-        def log_logit(x, rng):
-            lo, hi = math.log(rng[0]), math.log(rng[1])
-            return _logit(jnp.clip((jnp.log(x) - lo) / (hi - lo), eps, 1 - eps))
-
         return CookTorranceParams(
-            log_logit(self.alpha, ALPHA_RANGE),
+            _logit(jnp.clip(t, eps, 1 - eps)),
             _logit(jnp.clip(self.f0, eps, 1 - eps)),
             _logit(jnp.clip(self.rho_d, eps, 1 - eps)),
             None if self.e is None else _logit(jnp.clip(self.e / E_MAX, eps, 1 - eps)),
-            None if self.m is None else log_logit(self.m, M_RANGE),
+            None if self.m is None else M_BOUND.inverse(self.m),
         )
 
     @staticmethod
     def from_unconstrained(u: CookTorranceParams) -> CookTorranceParams:
         """Inverse of :meth:`to_unconstrained`; every real input maps inside the valid range."""
-
-        def log_sigmoid(x, rng):
-            lo, hi = math.log(rng[0]), math.log(rng[1])
-            return jnp.exp(lo + (hi - lo) * _sigmoid(x))
-
+        lo, hi = math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1])
+        alpha = jnp.exp(lo + (hi - lo) * _sigmoid(u.alpha))
         e = None if u.e is None else E_MAX * _sigmoid(u.e)
-        m = None if u.m is None else log_sigmoid(u.m, M_RANGE)
-        return CookTorranceParams(
-            log_sigmoid(u.alpha, ALPHA_RANGE), _sigmoid(u.f0), _sigmoid(u.rho_d), e, m
-        )
+        m = None if u.m is None else M_BOUND.forward(u.m)
+        return CookTorranceParams(alpha, _sigmoid(u.f0), _sigmoid(u.rho_d), e, m)
 
     def to_dict(self) -> dict:
         out = {

@@ -30,9 +30,9 @@ so). Gradients do not flow through the plugin (the NumPy copy detaches them).
 **Fitted records.** ``filename`` is a ``params.json`` of :mod:`twoscale.fit`, read with
 :func:`twoscale.fit.record.load_result`; its ``"albedo_table"``, when there, serves
 ``eval_diffuse_reflectance``. MERL's apparatus factor (``apparatus=True`` in the
-records of the MERL protocol) models the gonioreflectometer, not the material: the plugin switches
-it off (``apparatus=False``; the parameters ``e`` and ``m`` are then unused) unless the scene dict says
-``"apparatus": True``.
+records of the MERL protocol) models the gonioreflectometer, not the material: the plugin
+switches it off (``apparatus=False``; the parameters ``e`` and ``m`` are then unused) unless the
+scene dict says ``"apparatus": True``.
 
 **LLVM.** Mitsuba's ``llvm_*`` variants load ``libLLVM`` at run time. :func:`register` sets
 ``DRJIT_LIBLLVM_PATH`` (when unset) to the first of :data:`LLVM_CANDIDATES` that exists, and

@@ -16,15 +16,15 @@ e          e       —     [0, 5]                                      MERL appa
 m          m       —     [1, 20]                                     MERL apparatus knee exponent
 =========  ======  ====  ==========================================  ================================
 
-``beta, p, sigma_s, b, c, e, m`` are scalars shared by all channels; ``eta, k, rho_d`` hold one value
-per channel. Per-channel fields may hold 3 values (at the RGB wavelengths 0.645, 0.526, 0.444 µm),
+``beta, p, sigma_s, b, c, e, m`` are scalars shared by all channels; ``eta, k, rho_d`` hold one
+value per channel. Per-channel fields may hold 3 values (at the RGB wavelengths 0.645, 0.526, 0.444 µm),
 one value per wavelength of a spectral configuration, or a single value for all channels; with 3
 values and a spectral configuration they are upsampled to the wavelengths with
 ``twoscale.spectral.upsample_rgb`` (see :meth:`TwoScaleParams.channels`).
 
 Unconstrained space: every bounded field maps through a scaled sigmoid, in log space where the
-parameter is a scale (β, p, c − 1, b, conductor η, m), linearly otherwise (σ_s, k, ρ_d, e, dielectric
-η). Every real vector maps inside the closed valid range above (results are clipped to the range
+parameter is a scale (β, p, c − 1, b, conductor η, m), linearly otherwise (σ_s, k, ρ_d, e,
+dielectric η). Every real vector maps inside the closed valid range above (results are clipped to the range
 so that float32 rounding never leaves it), and the ranges lie inside the table domains, so the
 optimiser never sees a clamped, zero-gradient table edge. ``σ_s = 0``, ``k = 0`` and ``ρ_d = 0`` are
 limits (u → −∞); :meth:`TwoScaleParams.to_unconstrained` maps them, and any value on a bound, to a

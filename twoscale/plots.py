@@ -124,7 +124,8 @@ def merl_lookup(data, wi, wo):
 def plot_slices(
     data, model, path, *, theta_d_deg=(0, 20, 45, 70, 85), phi_d_deg: int = 90, title=""
 ):
-    """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log scale.
+    """Measured (dots) and fitted (lines) ``ρ`` against ``θ_h`` at fixed ``θ_d``, ``φ_d``; log
+    scale.
 
     The last default slice, θ_d = 85°, is where MERL's grazing fall-off (the apparatus factor,
     docs/model.md §3.11) shapes the mirror peak and where most of a fit's log error lives.

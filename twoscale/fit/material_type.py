@@ -23,7 +23,7 @@ def merl_protocol(
     diffraction: bool = True,
     apparatus: bool = True,
     diffuse_fresnel=False,
-    apparatus_knee: bool | None = None,
+    apparatus_knee: bool = True,
 ):
     """The model configuration the fitter uses for MERL data unless told otherwise.
 
@@ -33,7 +33,7 @@ def merl_protocol(
     - MERL's apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the specular
       lobe, its exponent ``e`` and knee exponent ``m`` fitted (docs/model.md §3.11): MERL's
       values fall off at grazing angles, and without it the shape parameters are bent to fit
-      that fall-off. The knee (``apparatus_knee``, default: as ``apparatus``) lets the fall-off
+      that fall-off. The knee (``apparatus_knee``; none without ``apparatus``) lets the fall-off
       start late and be steep, as the stand-ins' peaks show: they follow the bare model up to
       θ_d ≈ 80° and drop by a factor 50–200 from 84° to 89° (``campaigns/RESULTS.md``);
     - a plastic's body Lambertian (§3.9): MERL's plastics and fabrics do not darken towards
@@ -45,7 +45,7 @@ def merl_protocol(
     """
     from twoscale.config import ModelConfig
 
-    knee = apparatus and (apparatus_knee is None or apparatus_knee)  # no factor, no knee
+    knee = apparatus and apparatus_knee  # no factor, no knee
     return ModelConfig(
         diffraction=diffraction,
         apparatus=apparatus,
