@@ -90,21 +90,56 @@ NESTED_GRID = (
 )
 
 
-def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str, object]]:
+#: The start placed from the special case's highlight, ``(c, A_spec(0))`` with b from its β
+#: (:func:`narrow_b`): a strong diffraction lobe (95 % of the specular energy at normal
+#: incidence) as narrow as the special case's EPD lobe. Sharp highlights often end in that
+#: basin (on the 60 stand-ins of 2026-12-05, 18 full-model fits ended with b ≥ 56 µm, 12 of
+#: them at ≥ 319 µm), which the fixed b of :data:`NESTED_GRID` reach only from afar: on
+#: pink-jasper's first stage, the starts of that grid and A_spec(0) = 0.3 at this b all went to
+#: the special case (log RMS 0.0983 on 4 051 cells); A_spec(0) = 0.05 at b = 0.5, 1 and 2× this
+#: b, with c = 1.5, 3 or 5, reached 0.0901.
+NARROW_START = (1.5, 0.05)
+
+
+def narrow_b(beta: float, wavelength: float) -> float:
+    """b (µm) of a diffraction lobe as wide as an EPD lobe of roughness β.
+
+    The K-correlation lobe falls as ``[1 + (2u sin θ_h)²]^{−(c+1)/2}``, ``u = (b/λ) cos θ_d``
+    (docs/model.md §3.8): its width at normal incidence is ``sin θ_h ≈ λ/(2b)``; the EPD lobe's
+    is ``tan θ_h ≈ β``. So ``b = λ/(2β)``, kept inside b's range (at most 0.9 of its top, so
+    the start's sigmoid slope is not small).
+    """
+    from twoscale.params import bounds_for
+
+    lo, hi = bounds_for("b", None).lo, bounds_for("b", None).hi
+    return float(np.clip(wavelength / (2.0 * max(float(beta), 1e-12)), 2.0 * lo, 0.9 * hi))
+
+
+def nested_starts(
+    params, cfg, fixed: dict, grid=NESTED_GRID, narrow: bool = True
+) -> list[tuple[str, object]]:
     """Starts of the full model ``cfg`` from the fit of its diffraction-off special case.
 
     The specular parameters (β, p, η, k or ρ_d, e) are those of the special case's fit; the
     nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
-    itself, with a weak diffraction lobe whose gradient is not 0) and the points ``(c,
-    A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`).
+    itself, with a weak diffraction lobe whose gradient is not 0), the points ``(c,
+    A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`) and, with ``narrow``, a lobe
+    as narrow as the special case's EPD (:data:`NARROW_START`, b from :func:`narrow_b`).
     """
     from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
 
     wl = float(np.median(np.asarray(cfg.wavelengths)))
-    out = []
-    for label, a_spec, c, b in [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
+    points = [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
         (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b) for c, a, b in grid
-    ]:
+    ]
+    if narrow:
+        c, a = NARROW_START
+        b = narrow_b(float(params.beta), wl)
+        points.append(
+            (f"as narrow as the special case, c={c:g} A_spec(0)={a:g} b={b:.3g}", a, c, b)
+        )
+    out = []
+    for label, a_spec, c, b in points:
         c = float(fixed.get("c", c))
         b = float(fixed.get("b", b))
         sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(a_spec, b, c, wl)))

@@ -487,7 +487,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             g = sub_groups[source[gi]]
             p = Problem(g.adapter, g.layout, settings.metric).params(best[source[gi]].y, g.frozen)
             grid = FEW_NESTED_GRID if few else NESTED_GRID
-            start_lists[gi] = nested_starts(p, cfg, settings.fixed, grid)
+            start_lists[gi] = nested_starts(p, cfg, settings.fixed, grid, narrow=not few)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
     if settings.fresnel == "auto" and selection is None:
         selection = {
