@@ -578,7 +578,8 @@ def test_few_starts_subset(ct_clean):
     assert few_special and len(few_special) < len(all_special)
     assert all(label.split()[0] == "p=1" for label, _ in few_special)
     params = TwoScaleParams.conductor(0.1, 1.0, (0.2, 0.4, 1.3), (3.4, 2.4, 1.8), e=1.0)
-    nested = nested_starts(params, cfg, {}, FEW_NESTED_GRID)
+    # What the driver asks for with starts="few": no start placed from the highlight's width.
+    nested = nested_starts(params, cfg, {}, FEW_NESTED_GRID, narrow=False)
     kept = [label for label, _ in nested]
     assert len(kept) == 2 and kept[0] == NESTED_LABEL
     assert f"b={FEW_NESTED_GRID[0][2]:g}" in kept[1]
@@ -587,6 +588,40 @@ def test_few_starts_subset(ct_clean):
     assert _few_data_starts(other) == [("b", 2)]
     with pytest.raises(ValueError, match="few"):
         fit(ct_clean, config=CT, starts="several")
+
+
+def test_narrow_start_placed_from_the_special_case():
+    """The default start list of the full model ends with a strong diffraction lobe as narrow as
+    the special case's EPD: b = λ/(2β) at the median wavelength (inside b's range), c and
+    A_spec(0) of NARROW_START, the specular parameters those of the special case."""
+    from twoscale import TwoScaleParams
+    from twoscale.config import ModelConfig
+    from twoscale.fit.adapters import sigma_s_for_a_spec
+    from twoscale.fit.candidates import NARROW_START, NESTED_GRID, narrow_b, nested_starts
+    from twoscale.params import bounds_for
+
+    cfg = ModelConfig(material="plastic", apparatus=True)
+    wl = float(np.median(cfg.wavelengths))
+    special = TwoScaleParams.plastic(0.002, 0.4, (1.5, 1.5, 1.5), (0.2, 0.1, 0.05), e=1.0)
+    starts = nested_starts(special, cfg, {})
+    assert len(starts) == 2 + len(NESTED_GRID)
+    label, last = starts[-1]
+    c, a_spec = NARROW_START
+    assert label.startswith("as narrow as the special case")
+    np.testing.assert_allclose(float(last.b), wl / (2 * 0.002), rtol=1e-12)
+    np.testing.assert_allclose(float(last.c), c, rtol=1e-12)
+    np.testing.assert_allclose(
+        float(last.sigma_s), sigma_s_for_a_spec(a_spec, float(last.b), c, wl), rtol=1e-12
+    )
+    assert float(last.beta) == 0.002 and float(last.p) == 0.4
+    np.testing.assert_allclose(np.asarray(last.rho_d), (0.2, 0.1, 0.05))
+    # Inside b's range at both ends: a mirror-like β, and a wide one.
+    hi, lo = bounds_for("b", None).hi, bounds_for("b", None).lo
+    assert narrow_b(1e-6, wl) == 0.9 * hi
+    assert lo < narrow_b(1.0, wl) == wl / 2
+    # A fixed b (or c) overrides the placed one.
+    fixed = nested_starts(special, cfg, {"b": 7.0})[-1][1]
+    assert float(fixed.b) == 7.0
 
 
 def test_start_reaching_a_finished_minimum_stops_early(ct_noisy):
