@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
-from twoscale.model import apparatus_factor
+from twoscale.model import PAPER_KNEE, apparatus_factor
 from twoscale.params import bounds_for
 
 __all__ = [
@@ -239,7 +239,7 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
             raise ValueError("CookTorranceConfig(apparatus=True) needs the parameter e")
         if config.fits_knee and params.m is None:
             raise ValueError("CookTorranceConfig(apparatus_knee=True) needs the parameter m")
-        m = params.m if config.fits_knee else 2.0
+        m = params.m if config.fits_knee else PAPER_KNEE
         spec = spec * apparatus_factor(ci, params.e, m) * apparatus_factor(co, params.e, m)
     schlick = (1.0 - cos_d) ** 5
     f = params.f0 + (1.0 - params.f0) * schlick[..., None]

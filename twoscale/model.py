@@ -55,6 +55,7 @@ __all__ = [
     "albedo",
     "polarisation_q",
     "apparatus_factor",
+    "PAPER_KNEE",
     "LUMINANCE",
 ]
 
@@ -105,7 +106,12 @@ def polarisation_q(cos_i, cos_o, phi, eta, k):
     return q.astype(dtype)
 
 
-def apparatus_factor(cos_theta, e, m=2.0):
+#: The knee exponent of the paper's apparatus factor, ``L(θ) = [1 − (2θ/π)²]^e``: the value of m
+#: whenever it is not fitted (``apparatus_knee=False``) [docs/model.md §3.11].
+PAPER_KNEE = 2.0
+
+
+def apparatus_factor(cos_theta, e, m=PAPER_KNEE):
     """MERL apparatus factor ``L(θ) = [1 − (2θ/π)^m]^e``, θ in radians [docs/model.md §3.11].
 
     ``m = 2`` is the paper's form; a larger knee exponent ``m`` keeps ``L`` near 1 to a later
@@ -392,7 +398,7 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) ->
         # cos θ_i cos θ_o > 0 above the horizon; the floor only guards underflow.
         spec = g / jnp.maximum(4.0 * cos_i * cos_o, tiny(ch.dtype))
         if cfg.apparatus:
-            e, m = ch.par["e"], ch.par.get("m", 2.0)
+            e, m = ch.par["e"], ch.par.get("m", PAPER_KNEE)
             spec = spec * apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
         out["specular"] = hd["specular"] * _chan(ch, spec)
     if cfg.has_diffuse:

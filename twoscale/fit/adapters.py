@@ -30,6 +30,7 @@ import numpy as np
 
 from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
 from twoscale.fit.starts import DataStats, conductor_k_for_f0, dielectric_eta_for_f0
+from twoscale.model import PAPER_KNEE
 
 # Start grid of docs/model.md §8.
 START_P = (0.5, 1.0, 2.0)
@@ -41,7 +42,7 @@ START_B = 1.0
 #: Start value of MERL's apparatus exponent (fits of the stand-ins end near 0.5–1).
 START_E = 0.5
 #: Start value of the apparatus knee exponent: the paper's form, L(θ) = [1 − (2θ/π)²]^e.
-START_M = 2.0
+START_M = PAPER_KNEE
 
 #: Largest extinction coefficient of a conductor start (k's range ends at 10; F0 = 0.944 at
 #: η = 1.2). A brighter measured peak asks for k beyond the range; capping it here keeps the
