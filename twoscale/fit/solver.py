@@ -231,22 +231,33 @@ def _group_key(g: Group, opts) -> tuple:
     return (g.adapter.config, g.layout, opts.metric, opts.solver)
 
 
+#: Background threads that compile ahead (:class:`Warmup`). Two compile the special cases' and
+#: the full models' solves side by side while the fit waits for them on an empty compilation
+#: cache: pvc's ``--preview`` 33.3 → 27.3–27.9 s end to end, its default CLI 38.6 → 34.6 s
+#: (2-core machine, 2026-12-05); three were no faster (28.8 s); with a warm cache the same time
+#: (nickel's preview 14.6–15.3 s either way).
+WARMUP_THREADS = 2
+
+
 class Warmup:
-    """Compiles the solves of groups that a fit will need, in one background thread.
+    """Compiles the solves of groups that a fit will need, in :data:`WARMUP_THREADS` background
+    threads (in the order they were queued).
 
     Each call of :meth:`submit` queues a call of the compiled :func:`solve` on no cells (one
     solver step that only evaluates its start): its result is discarded, but the call traces
     and compiles the solve, and JAX keeps the compiled function for every later call with the
     same configuration and shapes. XLA compiles without holding Python's lock, so the fit's
-    current solves (one core at a few thousand cells) and the compilation of the next
-    configurations (the other core) overlap. :meth:`wait` is called before a group's first
+    current solves (a few thousand cells) and the compilation of the next configurations
+    overlap. :meth:`wait` is called before a group's first
     solve, so no solve is compiled twice; a warm-up that fails only costs its time (the
     fit's own call then compiles, or raises, as without it).
     """
 
     def __init__(self, data, opts):
         self._data, self._opts = data, opts
-        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="twoscale-warmup")
+        self._pool = concurrent.futures.ThreadPoolExecutor(
+            WARMUP_THREADS, thread_name_prefix="twoscale-warmup"
+        )
         self._futures: dict = {}
 
     def submit(self, g: Group, y0) -> None:
