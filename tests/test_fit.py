@@ -320,8 +320,8 @@ def test_nested_start_keeps_full_model_at_least_as_good():
     assert sum("nested" in label for label in labels) == 1, labels
     assert len(labels) == 2, labels
     # Every start of the full model comes from the special case's fit (the nested one and the
-    # (c, A_spec) grid around it).
-    assert all("nested" in label or "from the special case" in label for label in labels)
+    # lobe placed from its highlight).
+    assert all("nested" in label or "narrow as the special case" in label for label in labels)
     assert full.rmse_log <= spec.rmse_log * (1 + 1e-3), (full.rmse_log, spec.rmse_log)
     # Without the nested start the full model starts from the data (the few of them suffice to
     # show that: starts="few" keeps the p = 1 data starts).
@@ -564,7 +564,8 @@ def test_no_progress_raises(ct_noisy, monkeypatch):
 
 def test_few_starts_subset(ct_clean):
     """``starts="few"`` (the CLI's --preview): the special case from p = 1 only, the full model
-    from the nested start and the strong, narrow lobe only; an unknown start set is refused."""
+    from the nested start and the lobe placed from its highlight only; an unknown start set is
+    refused."""
     from twoscale import TwoScaleParams
     from twoscale.config import ModelConfig
     from twoscale.fit.candidates import NESTED_LABEL, nested_starts
@@ -578,11 +579,12 @@ def test_few_starts_subset(ct_clean):
     assert few_special and len(few_special) < len(all_special)
     assert all(label.split()[0] == "p=1" for label, _ in few_special)
     params = TwoScaleParams.conductor(0.1, 1.0, (0.2, 0.4, 1.3), (3.4, 2.4, 1.8), e=1.0)
-    # What the driver asks for with starts="few": no start placed from the highlight's width.
-    nested = nested_starts(params, cfg, {}, FEW_NESTED_GRID, narrow=False)
+    # What the driver asks for with starts="few": the nested start and the one placed from the
+    # special case's highlight.
+    nested = nested_starts(params, cfg, {}, FEW_NESTED_GRID)
     kept = [label for label, _ in nested]
     assert len(kept) == 2 and kept[0] == NESTED_LABEL
-    assert f"b={FEW_NESTED_GRID[0][2]:g}" in kept[1]
+    assert kept[1].startswith("as narrow as the special case")
     # A start list without a p = 1 start keeps its middle start.
     other = [("a", 1), ("b", 2), ("c", 3)]
     assert _few_data_starts(other) == [("b", 2)]

@@ -115,16 +115,14 @@ def narrow_b(beta: float, wavelength: float) -> float:
     return float(np.clip(wavelength / (2.0 * max(float(beta), 1e-12)), 2.0 * lo, 0.9 * hi))
 
 
-def nested_starts(
-    params, cfg, fixed: dict, grid=NESTED_GRID, narrow: bool = True
-) -> list[tuple[str, object]]:
+def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str, object]]:
     """Starts of the full model ``cfg`` from the fit of its diffraction-off special case.
 
     The specular parameters (β, p, η, k or ρ_d, e) are those of the special case's fit; the
     nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
     itself, with a weak diffraction lobe whose gradient is not 0), the points ``(c,
-    A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`) and, with ``narrow``, a lobe
-    as narrow as the special case's EPD (:data:`NARROW_START`, b from :func:`narrow_b`).
+    A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`) and a strong lobe as narrow as
+    the special case's EPD (:data:`NARROW_START`, b from :func:`narrow_b`).
     """
     from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
 
@@ -132,12 +130,9 @@ def nested_starts(
     points = [(NESTED_LABEL, NESTED_A_SPEC, START_C[0], START_B)] + [
         (f"from the special case, c={c:g} A_spec(0)={a:g} b={b:g}", a, c, b) for c, a, b in grid
     ]
-    if narrow:
-        c, a = NARROW_START
-        b = narrow_b(float(params.beta), wl)
-        points.append(
-            (f"as narrow as the special case, c={c:g} A_spec(0)={a:g} b={b:.3g}", a, c, b)
-        )
+    c, a = NARROW_START
+    b = narrow_b(float(params.beta), wl)
+    points.append((f"as narrow as the special case, c={c:g} A_spec(0)={a:g} b={b:.3g}", a, c, b))
     out = []
     for label, a_spec, c, b in points:
         c = float(fixed.get("c", c))
