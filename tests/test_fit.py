@@ -621,9 +621,14 @@ def test_narrow_start_placed_from_the_special_case():
     hi, lo = bounds_for("b", None).hi, bounds_for("b", None).lo
     assert narrow_b(1e-6, wl) == 0.9 * hi
     assert lo < narrow_b(1.0, wl) == wl / 2
-    # A fixed b (or c) overrides the placed one.
-    fixed = nested_starts(special, cfg, {"b": 7.0})[-1][1]
-    assert float(fixed.b) == 7.0
+    # A fixed b (or c) overrides the placed one; points it makes equal are fitted once: with
+    # b = 7 µm the grid's two strong lobes (c = 1.5, A_spec(0) = 0.05) and the placed one are
+    # the same start.
+    fixed = nested_starts(special, cfg, {"b": 7.0})
+    assert all(float(s.b) == 7.0 for _, s in fixed)
+    assert float(fixed[-1][1].b) == 7.0
+    keys = [(float(s.sigma_s), float(s.c)) for _, s in fixed]
+    assert len(keys) == len(set(keys)) == len(starts) - 2
 
 
 def test_start_reaching_a_finished_minimum_stops_early(ct_noisy):

@@ -111,8 +111,10 @@ def narrow_b(beta: float, wavelength: float) -> float:
     """
     from twoscale.params import bounds_for
 
-    lo, hi = bounds_for("b", None).lo, bounds_for("b", None).hi
-    return float(np.clip(wavelength / (2.0 * max(float(beta), 1e-12)), 2.0 * lo, 0.9 * hi))
+    bound = bounds_for("b", None)
+    return float(
+        np.clip(wavelength / (2.0 * max(float(beta), 1e-12)), 2.0 * bound.lo, 0.9 * bound.hi)
+    )
 
 
 def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str, object]]:
@@ -122,7 +124,9 @@ def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str,
     nano-scale ones are the nested start (``A_spec(0)`` = :data:`NESTED_A_SPEC`: the special case
     itself, with a weak diffraction lobe whose gradient is not 0), the points ``(c,
     A_spec(0), b µm)`` of ``grid`` (default :data:`NESTED_GRID`) and a strong lobe as narrow as
-    the special case's EPD (:data:`NARROW_START`, b from :func:`narrow_b`).
+    the special case's EPD (:data:`NARROW_START`, b from :func:`narrow_b`). Parameters held
+    fixed (``fixed``: σ_s, b or c) override these values; a point that then repeats an earlier
+    one's ``(σ_s, b, c)`` is left out (it would fit the same start again).
     """
     from twoscale.fit.adapters import START_B, START_C, sigma_s_for_a_spec
 
@@ -133,11 +137,14 @@ def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str,
     c, a = NARROW_START
     b = narrow_b(float(params.beta), wl)
     points.append((f"as narrow as the special case, c={c:g} A_spec(0)={a:g} b={b:.3g}", a, c, b))
-    out = []
+    out, seen = [], set()
     for label, a_spec, c, b in points:
         c = float(fixed.get("c", c))
         b = float(fixed.get("b", b))
         sigma_s = float(fixed.get("sigma_s", sigma_s_for_a_spec(a_spec, b, c, wl)))
+        if (sigma_s, b, c) in seen:
+            continue
+        seen.add((sigma_s, b, c))
         out.append((label, params.replace(sigma_s=sigma_s, b=b, c=c).for_config(cfg)))
     return out
 
