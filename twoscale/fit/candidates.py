@@ -15,6 +15,7 @@ import numpy as np
 from twoscale.fit.adapters import adapter_for
 from twoscale.fit.residuals import Layout
 from twoscale.fit.schedule import Stage
+from twoscale.params import SHARED_FIELDS as _PARAM_SCALARS
 
 
 @dataclasses.dataclass
@@ -150,10 +151,11 @@ def nested_starts(params, cfg, fixed: dict, grid=NESTED_GRID) -> list[tuple[str,
 
 
 #: The parameters every material type shares: the surface's geometry (EPD and PSD) and MERL's
-#: apparatus exponent. A type's own parameters (a conductor's η and k, a plastic's η and ρ_d)
-#: set the lobes' amplitudes and colour, which a solver moves easily; the geometry sets the
-#: basin (:func:`cross_seed`).
-SHARED_FIELDS = ("beta", "p", "sigma_s", "b", "c", "e", "m")
+#: apparatus factor (e, m), which are the model's scalar fields (:data:`twoscale.params.
+#: SHARED_FIELDS`, one value for all channels). A type's own parameters (a conductor's η and
+#: k, a plastic's η and ρ_d) set the lobes' amplitudes and colour, which a solver moves easily;
+#: the geometry sets the basin (:func:`cross_seed`).
+SHARED_FIELDS = _PARAM_SCALARS
 
 
 def cross_seed(src: Candidate, g_src: Group, dst: Candidate, g_dst: Group) -> Candidate | None:
