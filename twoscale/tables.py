@@ -30,8 +30,9 @@ in one registry (the tables of :data:`STORED_FLOAT32` keep float32 coefficients 
 float64: :attr:`Spline.compute`). ``extra`` names a further array of the same file that a
 kernel interpolates over the table's leading axes (the convolution table's angle map and
 ``log k``). :func:`clear_caches` empties the registry and the :func:`load_table` cache;
-:func:`cached_splines` lists what is built. :func:`interpolation` is a study hook (``python -m benchmarks.run``): while active, the
-tables' main splines are built with another order and/or on a subsampled grid.
+:func:`cached_splines` lists what is built. :func:`interpolation` is a study hook
+(``python -m benchmarks.run``): while active, the tables' main splines are built with another
+order and/or on a subsampled grid.
 
 File format (``.npz``): ``values`` (float64, grid shape + optional trailing component dims) and
 ``meta`` (a JSON string with ``name``, ``version``, ``axes`` = list of

@@ -605,8 +605,9 @@ def fit(
         fixed: ``{name: value}`` physical values of parameters held fixed (e.g. ``{"p": 1.0}``).
         starts: ``"default"`` (placed from the data), ``"few"`` (a subset of those: the
             special case from p = 1 only, the full model from the nested start and one strong
-            diffraction lobe as narrow as the special case's highlight, and with ``fresnel="auto"`` the full model with the
-            Fresnel form its special case chose only; the CLI's ``--preview``) or a list of
+            diffraction lobe as narrow as the special case's highlight, and with
+            ``fresnel="auto"`` the full model with the Fresnel form its special case chose
+            only; the CLI's ``--preview``) or a list of
             parameter objects (needs a single material type).
         schedule: ``"default"``, ``"preview"`` (no last refinement), ``"full"`` (the last
             refinement on every fitted cell) or a list of :class:`Stage`.

@@ -248,9 +248,9 @@ class Warmup:
     and compiles the solve, and JAX keeps the compiled function for every later call with the
     same configuration and shapes. XLA compiles without holding Python's lock, so the fit's
     current solves (a few thousand cells) and the compilation of the next configurations
-    overlap. :meth:`wait` is called before a group's first
-    solve, so no solve is compiled twice; a warm-up that fails only costs its time (the
-    fit's own call then compiles, or raises, as without it).
+    overlap. :meth:`wait` is called before a group's first solve, so no solve is compiled
+    twice; a warm-up that fails only costs its time (the fit's own call then compiles, or
+    raises, as without it).
     """
 
     def __init__(self, data, opts):
