@@ -554,12 +554,44 @@ def test_no_progress_raises(ct_noisy, monkeypatch):
     real = solver.solve
 
     def stuck(problem, y0, *args):
-        _, res, _, k, _, rr, jtj = real(problem, y0, *args)
-        return y0, res, False, k, 0, rr, jtj  # y never moves, no accepted step
+        _, res, _, k, _, rr, jtj, size = real(problem, y0, *args)
+        return y0, res, False, k, 0, rr, jtj, size  # y never moves, no accepted step
 
     monkeypatch.setattr(solver, "solve", stuck)
     with pytest.raises(driver.FitError, match="progress"):
         fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 6)])
+
+
+def test_rejected_rounds_carry_the_damping(monkeypatch):
+    """A round of solver steps that were all rejected hands its damping to the next round (which
+    would otherwise repeat the same steps from the same point), and a start whose steps stay
+    rejected while the damping grows past MAX_DAMPING has converged, before the step limit."""
+    import types
+
+    import optimistix as optx
+
+    import twoscale.fit.solver as solver
+
+    seen = []
+
+    def rejected(g, y0, data, n_active, cap, m, scale, opts):
+        seen.append((cap, np.asarray(scale)))
+        # The trust region shrinks by 4 at each rejected step after the first (an evaluation).
+        return y0, optx.RESULTS.successful, False, cap, 0, 1.0, np.eye(2), 0.25 ** (cap - 1)
+
+    monkeypatch.setattr(solver, "_run_solve", rejected)
+    cand = types.SimpleNamespace(y=np.zeros(2), moves=0, twin=None)
+    g = types.SimpleNamespace(layout=types.SimpleNamespace(size=2))
+    opts = types.SimpleNamespace(solver="lm")
+    stage = Stage(4096, keep=1, max_steps=100, round_steps=5)
+    y, rr, jtj, steps, converged, status = solver.refine(cand, g, stage, None, 1, 8000, opts)
+    rounds = [sc for cap, sc in seen if cap > 1]
+    # Each round starts 4⁴ = 256 times more damped than the last: its scales are 16 times smaller.
+    for a, b in zip(rounds, rounds[1:]):
+        np.testing.assert_allclose(a / b, 16.0)
+    # 256^r · INITIAL_DAMPING passes MAX_DAMPING = 1e5 after r = 4 rounds of 5 steps.
+    assert converged and status == "converged (no step lowers the RMS)", status
+    assert steps == 20 and len(rounds) == 4 and cand.moves == 0
 
 
 def test_few_starts_subset(ct_clean):

@@ -129,6 +129,13 @@ INITIAL_DAMPING = 1e-3
 _MAX_SCALE = 10.0
 
 
+#: Relative damping (Levenberg-Marquardt's λ over the diagonal of JᵀJ) past which :func:`refine`
+#: stops a start whose steps are all rejected: its steps are then about a hundred-thousandth of a
+#: gradient step and still do not lower the cost, so it sits at its minimum to the precision of
+#: the residuals.
+MAX_DAMPING = 1e5
+
+
 def scales(jtj: np.ndarray) -> np.ndarray:
     """Per-parameter scales ``σ_j = 1/(√(JᵀJ)_jj √μ0)``: the solver works on ``z = (y − y0)/σ``.
 
@@ -150,10 +157,12 @@ def solve(
 
     The solver works on ``z = (y − y0)/scale``. Its first step only evaluates the residuals and
     their Jacobian at ``y0`` (so a solve of ``step_cap`` steps makes ``step_cap − 1`` moves).
-    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y, JᵀJ at y)`` (``JᵀJ`` in
-    ``y``, from the solver's final linearisation, and ``rᵀr`` from its compressed residual: no
-    extra pass over the data; a solve of one step gives them at ``y0``). ``converged``: the
-    solver's own test or the standard-error test, not the step limit.
+    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y, JᵀJ at y, step size)``
+    (``JᵀJ`` in ``y``, from the solver's final linearisation, and ``rᵀr`` from its compressed
+    residual: no extra pass over the data; a solve of one step gives them at ``y0``; the step
+    size is the solver's trust-region size in ``z`` at the end, 1 at the start: Levenberg-
+    Marquardt's damping is its inverse). ``converged``: the solver's own test or the
+    standard-error test, not the step limit.
     """
     solver = make_solver(solver_name, rtol, atol)
 
@@ -178,7 +187,8 @@ def solve(
         sol.result == optx.RESULTS.successful
     )
     moves = sol.state.num_accepted_steps - 1  # accepted steps after the evaluation of y0
-    return y, sol.result, converged, sol.stats["num_steps"], moves, rr, j_c.T @ j_c
+    step_size = sol.state.search_state.step_size
+    return y, sol.result, converged, sol.stats["num_steps"], moves, rr, j_c.T @ j_c, step_size
 
 
 @eqx.filter_jit
@@ -294,7 +304,7 @@ def start_cost(y, g: Group, data, n_active: int, m: int, opts) -> float:
     if n == 0:
         problem = Problem(g.adapter, g.layout, opts.metric)
         return float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
-    *_, rr, _ = _run_solve(g, y, data, n_active, 1, m, np.ones(n), opts)
+    rr = _run_solve(g, y, data, n_active, 1, m, np.ones(n), opts)[5]
     return float(rr)
 
 
@@ -321,14 +331,20 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     # A solve of one step only linearises at y: rᵀr there (each round's reference, for the stall
     # rule; a round then starts where the last one ended) and JᵀJ for the scales (Marquardt's
     # scaling), on this stage's cells.
-    *_, rr, jtj = run(y, 1, np.ones(n))
+    _, _, _, _, _, rr, jtj, _ = run(y, 1, np.ones(n))
     rr, jtj = float(rr), np.asarray(jtj)
     steps = 0
     stall = stall_rtol(m)
+    # The damping a round starts from, relative to INITIAL_DAMPING: where the last round's
+    # steps left it when they were rejected (see below), else 1.
+    damp = 1.0
+    power = 2.0 if opts.solver == "dogleg" else 1.0  # a trust radius in z scales as 1/√damp
     while steps < stage.max_steps:
         # At least 2: the first step of a solve only evaluates its starting point.
         cap = max(2, min(stage.round_steps, stage.max_steps - steps))
-        y_new, res, conv, k, moves, rr_new, jtj_new = run(y, cap, scales(jtj))
+        y_new, res, conv, k, moves, rr_new, jtj_new, size = run(
+            y, cap, scales(jtj) / math.sqrt(damp)
+        )
         rr0, rr_new = rr, float(rr_new)
         msg = result_message(res)
         steps += int(k)
@@ -348,4 +364,12 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
         # rejected says nothing (the damping was still growing).
         if int(moves) > 0 and 0.5 * fell < stall:
             return y, rr, jtj, steps, True, f"converged (RMS changed < {stall:.2g} in a round)"
+        # The next round starts from the damping this one ended with (never below the usual
+        # start): each round restarts the solver, and one that starts from the same point
+        # with the same scales as a round whose steps were all rejected repeats those steps
+        # (fruitwood-241's last stage: five rounds, 25 steps, none accepted, 2026-12-05).
+        size = float(size)
+        damp = max(1.0, damp / size**power) if math.isfinite(size) and size > 0 else damp
+        if int(moves) == 0 and damp * INITIAL_DAMPING > MAX_DAMPING:
+            return y, rr, jtj, steps, True, "converged (no step lowers the RMS)"
     return y, rr, jtj, steps, False, "step limit reached"
