@@ -587,7 +587,7 @@ def test_rejected_rounds_carry_the_damping(monkeypatch):
     y, rr, jtj, steps, converged, status = solver.refine(cand, g, stage, None, 1, 8000, opts)
     rounds = [sc for cap, sc in seen if cap > 1]
     # Each round starts 4⁴ = 256 times more damped than the last: its scales are 16 times smaller.
-    for a, b in zip(rounds, rounds[1:]):
+    for a, b in zip(rounds[:-1], rounds[1:], strict=True):
         np.testing.assert_allclose(a / b, 16.0)
     # 256^r · INITIAL_DAMPING passes MAX_DAMPING = 1e5 after r = 4 rounds of 5 steps.
     assert converged and status == "converged (no step lowers the RMS)", status
