@@ -3,6 +3,10 @@
 import os
 from pathlib import Path
 
+# Before JAX's import: large constants (the convolution table) passed to compiled code as
+# arguments, as in the CLI (twoscale._xla.HOIST_ENV; JAX reads it when it is imported).
+os.environ.setdefault("JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS", "true")
+
 import pytest
 
 from twoscale._hugepages import avoid_hugepage_stalls

@@ -31,7 +31,15 @@ References:
         Reflection and Diffraction", ACM TOG 36(4) 66, 2017.
 """
 
-from twoscale import (
+from twoscale import _xla
+
+if _xla.started_as_cli():
+    # `python -m twoscale.fit`: before JAX's import (by the modules below), the CLI's option that
+    # JAX reads then: large constants passed to compiled code as arguments (twoscale._xla).
+    # Imported as a library, twoscale changes no JAX setting.
+    _xla.hoist_large_constants()
+
+from twoscale import (  # noqa: E402
     baselines as baselines,
 )
 from twoscale import (

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import sys
 from pathlib import Path
 
 FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
@@ -65,3 +66,53 @@ def prefer_fast_compile(environ=None) -> bool:
         return False
     env["XLA_FLAGS"] = f"{flags} {FAST_COMPILE_FLAG}".strip()
     return True
+
+
+
+#: JAX's option (an environment variable, read when JAX is imported) that passes a function's
+#: large closed-over constants to its compiled code as arguments instead of embedding them in it
+#: (above ``jax_embedded_constants_max_bytes``, 32 bytes by default;
+#: https://docs.jax.dev/en/latest/internals/constants.html). JAX calls the option transitional:
+#: it selects the behaviour that is to become the default. Set after JAX's import (with
+#: ``jax.config.update``) it changes the flag's value but not the behaviour (JAX 0.10.2).
+HOIST_ENV = "JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS"
+
+#: Switch: ``TWOSCALE_HOIST_CONSTANTS=0`` keeps JAX's default (constants embedded).
+HOIST_SWITCH = "TWOSCALE_HOIST_CONSTANTS"
+
+#: The command lines that set :data:`HOIST_ENV` for themselves (``python -m MODULE``).
+CLI_MODULES = ("twoscale.fit",)
+
+
+def hoist_large_constants(environ=None, modules=None) -> bool:
+    """Set :data:`HOIST_ENV` unless the user set it, ``TWOSCALE_HOIST_CONSTANTS=0``, or JAX is
+    already imported (``modules``: default ``sys.modules``), when it would change nothing.
+    Returns whether large constants are hoisted in this process.
+
+    Why: the convolution table's 5.7 M spline coefficients (23 MB in float32) are closed-over
+    constants of every compiled function that evaluates the diffraction lobe. Embedded, they are
+    converted, compiled into and stored with each such function: a ``--preview`` fit compiled
+    them into five functions and wrote 123 MB to the persistent compilation cache (2.7 MB with
+    them hoisted). The option is part of JAX's compilation key, so code compiled either way is
+    never mixed up.
+    """
+    env = os.environ if environ is None else environ
+    mods = sys.modules if modules is None else modules
+    if env.get(HOIST_SWITCH, "1") == "0":
+        return False
+    if HOIST_ENV in env:
+        return env[HOIST_ENV].strip().lower() in ("1", "true", "yes", "on")
+    if "jax" in mods:
+        return False
+    env[HOIST_ENV] = "true"
+    return True
+
+
+def started_as_cli(argv=None) -> bool:
+    """Whether this process is ``python [options] -m M ...`` for an ``M`` of :data:`CLI_MODULES`
+    (``argv``: default ``sys.orig_argv``, the interpreter's own command line)."""
+    argv = list(getattr(sys, "orig_argv", []) if argv is None else argv)
+    if "-m" not in argv:
+        return False
+    i = argv.index("-m")
+    return i + 1 < len(argv) and argv[i + 1] in CLI_MODULES
