@@ -68,7 +68,6 @@ def prefer_fast_compile(environ=None) -> bool:
     return True
 
 
-
 #: JAX's option (an environment variable, read when JAX is imported) that passes a function's
 #: large closed-over constants to its compiled code as arguments instead of embedding them in it
 #: (above ``jax_embedded_constants_max_bytes``, 32 bytes by default;
