@@ -24,7 +24,10 @@ Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACH
 file, skips most of the compilation; ``--no-compile-cache`` (or ``TWOSCALE_COMPILE_CACHE=0``)
 switches it off. XLA compiles with its older CPU loop emitters, about a third faster to compile
 at nearly the same speed (:mod:`twoscale._xla` has the measurements), unless ``XLA_FLAGS`` already
-sets ``xla_cpu_use_fusion_emitters`` or ``TWOSCALE_FAST_COMPILE=0``. NumPy's huge-page advice
+sets ``xla_cpu_use_fusion_emitters`` or ``TWOSCALE_FAST_COMPILE=0``; and large constants (the
+convolution table) are passed to compiled code as arguments instead of being compiled into it
+(``JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS``, set by ``twoscale/__init__.py`` before JAX's import when
+the process is this command; ``TWOSCALE_HOIST_CONSTANTS=0`` keeps JAX's default). NumPy's huge-page advice
 for large arrays is switched off, whose page faults can stall on Linux (a warm run 38 → 31 s;
 :mod:`twoscale._hugepages`), unless ``NUMPY_MADVISE_HUGEPAGE`` is set.
 
