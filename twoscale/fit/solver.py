@@ -226,10 +226,12 @@ def _run_solve(g: Group, y0, data, n_active: int, cap: int, m: int, scale, opts)
         y0,
         g.frozen,
         data,
-        jnp.int32(n_active),  # dynamic: one compiled solve serves every stage
-        jnp.int32(cap),  # dynamic too
-        jnp.int32(m),
-        jnp.asarray(scale),
+        # NumPy arrays, not jnp ones: the compiled call takes them as they are, where creating
+        # each with JAX first is an eager operation (≈ 2 ms each while other threads trace).
+        np.asarray(n_active, np.int32),  # dynamic: one compiled solve serves every stage
+        np.asarray(cap, np.int32),  # dynamic too
+        np.asarray(m, np.int32),
+        np.asarray(scale, y0.dtype),
         opts.rtol,
         opts.atol,
         opts.se_tol,
