@@ -554,8 +554,8 @@ def test_no_progress_raises(ct_noisy, monkeypatch):
     real = solver.solve
 
     def stuck(problem, y0, *args):
-        _, res, _, k, _, rr, jtj, size = real(problem, y0, *args)
-        return y0, res, False, k, 0, rr, jtj, size  # y never moves, no accepted step
+        # y never moves, no accepted step
+        return real(problem, y0, *args)._replace(y=y0, converged=False, moves=0)
 
     monkeypatch.setattr(solver, "solve", stuck)
     with pytest.raises(driver.FitError, match="progress"):
@@ -577,7 +577,9 @@ def test_rejected_rounds_carry_the_damping(monkeypatch):
     def rejected(g, y0, data, n_active, cap, m, scale, opts):
         seen.append((cap, np.asarray(scale)))
         # The trust region shrinks by 4 at each rejected step after the first (an evaluation).
-        return y0, optx.RESULTS.successful, False, cap, 0, 1.0, np.eye(2), 0.25 ** (cap - 1)
+        return solver.Solved(
+            y0, optx.RESULTS.successful, False, cap, 0, 1.0, np.eye(2), 0.25 ** (cap - 1)
+        )
 
     monkeypatch.setattr(solver, "_run_solve", rejected)
     cand = types.SimpleNamespace(y=np.zeros(2), moves=0, twin=None)

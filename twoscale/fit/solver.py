@@ -10,6 +10,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -149,6 +150,19 @@ def scales(jtj: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(s), np.minimum(s, _MAX_SCALE), _MAX_SCALE)
 
 
+class Solved(NamedTuple):
+    """What one call of :func:`solve` returns (arrays; a pytree)."""
+
+    y: jax.Array  # where the solve ended (y0 after a solve of one step)
+    result: optx.RESULTS
+    converged: jax.Array  # the solver's own test or the standard-error test, not the step limit
+    steps: jax.Array  # solver steps made, the first one (evaluating y0) included
+    moves: jax.Array  # accepted steps after the evaluation of y0
+    rr: jax.Array  # rᵀr at y
+    jtj: jax.Array  # JᵀJ at y
+    step_size: jax.Array  # the trust region's size in z at the end (1 at the start)
+
+
 @eqx.filter_jit
 def solve(
     problem, y0, frozen, data, n_active, step_cap, n_resid, scale, rtol, atol, se_tol, solver_name
@@ -157,12 +171,9 @@ def solve(
 
     The solver works on ``z = (y − y0)/scale``. Its first step only evaluates the residuals and
     their Jacobian at ``y0`` (so a solve of ``step_cap`` steps makes ``step_cap − 1`` moves).
-    Returns ``(y, result, converged, steps, accepted moves, rᵀr at y, JᵀJ at y, step size)``
-    (``JᵀJ`` in ``y``, from the solver's final linearisation, and ``rᵀr`` from its compressed
-    residual: no extra pass over the data; a solve of one step gives them at ``y0``; the step
-    size is the solver's trust-region size in ``z`` at the end, 1 at the start: Levenberg-
-    Marquardt's damping is its inverse). ``converged``: the solver's own test or the
-    standard-error test, not the step limit.
+    Returns a :class:`Solved` (``JᵀJ`` in ``y``, from the solver's final linearisation, and
+    ``rᵀr`` from its compressed residual: no extra pass over the data; a solve of one step gives
+    them at ``y0``; Levenberg-Marquardt's damping is the inverse of the step size).
     """
     solver = make_solver(solver_name, rtol, atol)
 
@@ -187,8 +198,16 @@ def solve(
         sol.result == optx.RESULTS.successful
     )
     moves = sol.state.num_accepted_steps - 1  # accepted steps after the evaluation of y0
-    step_size = sol.state.search_state.step_size
-    return y, sol.result, converged, sol.stats["num_steps"], moves, rr, j_c.T @ j_c, step_size
+    return Solved(
+        y,
+        sol.result,
+        converged,
+        sol.stats["num_steps"],
+        moves,
+        rr,
+        j_c.T @ j_c,
+        sol.state.search_state.step_size,
+    )
 
 
 @eqx.filter_jit
@@ -306,8 +325,7 @@ def start_cost(y, g: Group, data, n_active: int, m: int, opts) -> float:
     if n == 0:
         problem = Problem(g.adapter, g.layout, opts.metric)
         return float(jit_sum_squares(problem, y, g.frozen, data, jnp.int32(n_active)))
-    rr = _run_solve(g, y, data, n_active, 1, m, np.ones(n), opts)[5]
-    return float(rr)
+    return float(_run_solve(g, y, data, n_active, 1, m, np.ones(n), opts).rr)
 
 
 def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int, opts, twin=None):
@@ -333,45 +351,44 @@ def refine(cand: Candidate, g: Group, stage: Stage, data, n_active: int, m: int,
     # A solve of one step only linearises at y: rᵀr there (each round's reference, for the stall
     # rule; a round then starts where the last one ended) and JᵀJ for the scales (Marquardt's
     # scaling), on this stage's cells.
-    _, _, _, _, _, rr, jtj, _ = run(y, 1, np.ones(n))
-    rr, jtj = float(rr), np.asarray(jtj)
+    first = run(y, 1, np.ones(n))
+    rr, jtj = float(first.rr), np.asarray(first.jtj)
     steps = 0
     stall = stall_rtol(m)
-    # The damping a round starts from, relative to INITIAL_DAMPING: where the last round's
-    # steps left it when they were rejected (see below), else 1.
+    # The damping a round starts from, relative to INITIAL_DAMPING: where the last round left
+    # it, never below 1 (see below).
     damp = 1.0
     power = 2.0 if opts.solver == "dogleg" else 1.0  # a trust radius in z scales as 1/√damp
     while steps < stage.max_steps:
         # At least 2: the first step of a solve only evaluates its starting point.
         cap = max(2, min(stage.round_steps, stage.max_steps - steps))
-        y_new, res, conv, k, moves, rr_new, jtj_new, size = run(
-            y, cap, scales(jtj) / math.sqrt(damp)
-        )
-        rr0, rr_new = rr, float(rr_new)
-        msg = result_message(res)
-        steps += int(k)
-        cand.moves += int(moves)
-        if not (math.isfinite(rr_new) and np.all(np.isfinite(np.asarray(y_new)))):
+        out = run(y, cap, scales(jtj) / math.sqrt(damp))
+        rr0, rr_new = rr, float(out.rr)
+        msg = result_message(out.result)
+        moves = int(out.moves)
+        steps += int(out.steps)
+        cand.moves += moves
+        if not (math.isfinite(rr_new) and np.all(np.isfinite(np.asarray(out.y)))):
             return y, rr, jtj, steps, False, msg or "non-finite values"
         fell = (rr0 - rr_new) / rr0 if math.isfinite(rr0) and rr0 > 0 else math.inf
-        y, rr, jtj = y_new, rr_new, np.asarray(jtj_new)
-        if bool(conv):
+        y, rr, jtj = out.y, rr_new, np.asarray(out.jtj)
+        if bool(out.converged):
             return y, rr, jtj, steps, True, "converged"
-        if msg and res != optx.RESULTS.nonlinear_max_steps_reached:
+        if msg and out.result != optx.RESULTS.nonlinear_max_steps_reached:
             return y, rr, jtj, steps, False, msg
         cand.twin = None if twin is None else twin(y)
         if cand.twin is not None:
             return y, rr, jtj, steps, False, f"stopped: reached the minimum of [{cand.twin}]"
         # RMS relative change ≈ half the relative change of rᵀr; a round whose steps were all
         # rejected says nothing (the damping was still growing).
-        if int(moves) > 0 and 0.5 * fell < stall:
+        if moves > 0 and 0.5 * fell < stall:
             return y, rr, jtj, steps, True, f"converged (RMS changed < {stall:.2g} in a round)"
         # The next round starts from the damping this one ended with (never below the usual
         # start): each round restarts the solver, and one that starts from the same point
         # with the same scales as a round whose steps were all rejected repeats those steps
         # (fruitwood-241's last stage: five rounds, 25 steps, none accepted, 2026-12-05).
-        size = float(size)
+        size = float(out.step_size)
         damp = max(1.0, damp / size**power) if math.isfinite(size) and size > 0 else damp
-        if int(moves) == 0 and damp * INITIAL_DAMPING > MAX_DAMPING:
+        if moves == 0 and damp * INITIAL_DAMPING > MAX_DAMPING:
             return y, rr, jtj, steps, True, "converged (no step lowers the RMS)"
     return y, rr, jtj, steps, False, "step limit reached"
