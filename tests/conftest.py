@@ -4,8 +4,11 @@ import os
 from pathlib import Path
 
 # Before JAX's import: large constants (the convolution table) passed to compiled code as
-# arguments, as in the CLI (twoscale._xla.HOIST_ENV; JAX reads it when it is imported).
-os.environ.setdefault("JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS", "true")
+# arguments, as in the CLI (twoscale._xla.HOIST_ENV; JAX reads it when it is imported), with the
+# CLI's rules: a value the user set wins, TWOSCALE_HOIST_CONSTANTS=0 keeps JAX's default. The
+# names are spelled out: importing twoscale._xla would import JAX first.
+if os.environ.get("TWOSCALE_HOIST_CONSTANTS", "1") != "0":
+    os.environ.setdefault("JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS", "true")
 
 import pytest
 

@@ -562,7 +562,15 @@ def test_no_progress_raises(ct_noisy, monkeypatch):
         fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 6)])
 
 
-def test_rejected_rounds_carry_the_damping(monkeypatch):
+@pytest.mark.parametrize(
+    ("solver_name", "ratio", "n_rounds"),
+    # Levenberg-Marquardt: the step size is the damping's inverse, 4⁴ = 256 more damped per
+    # round, scales 16× smaller; 256^r · INITIAL_DAMPING passes MAX_DAMPING = 1e5 at r = 4.
+    # Dogleg: a trust radius in the scaled variables goes as 1/√damping, so 256² = 65,536 more
+    # damped per round, scales 256× smaller; 65,536^r · 1e-3 passes 1e5 at r = 2.
+    [("lm", 16.0, 4), ("dogleg", 256.0, 2)],
+)
+def test_rejected_rounds_carry_the_damping(monkeypatch, solver_name, ratio, n_rounds):
     """A round of solver steps that were all rejected hands its damping to the next round (which
     would otherwise repeat the same steps from the same point), and a start whose steps stay
     rejected while the damping grows past MAX_DAMPING has converged, before the step limit."""
@@ -584,16 +592,15 @@ def test_rejected_rounds_carry_the_damping(monkeypatch):
     monkeypatch.setattr(solver, "_run_solve", rejected)
     cand = types.SimpleNamespace(y=np.zeros(2), moves=0, twin=None)
     g = types.SimpleNamespace(layout=types.SimpleNamespace(size=2))
-    opts = types.SimpleNamespace(solver="lm")
+    opts = types.SimpleNamespace(solver=solver_name)
     stage = Stage(4096, keep=1, max_steps=100, round_steps=5)
     y, rr, jtj, steps, converged, status = solver.refine(cand, g, stage, None, 1, 8000, opts)
     rounds = [sc for cap, sc in seen if cap > 1]
-    # Each round starts 4⁴ = 256 times more damped than the last: its scales are 16 times smaller.
+    # Each round starts more damped than the last (4 rejected steps): its scales are smaller.
     for a, b in zip(rounds[:-1], rounds[1:], strict=True):
-        np.testing.assert_allclose(a / b, 16.0)
-    # 256^r · INITIAL_DAMPING passes MAX_DAMPING = 1e5 after r = 4 rounds of 5 steps.
+        np.testing.assert_allclose(a / b, ratio)
     assert converged and status == "converged (no step lowers the RMS)", status
-    assert steps == 20 and len(rounds) == 4 and cand.moves == 0
+    assert steps == 5 * n_rounds and len(rounds) == n_rounds and cand.moves == 0
 
 
 def test_few_starts_subset(ct_clean):
