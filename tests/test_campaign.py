@@ -401,3 +401,47 @@ def test_help(capsys):
     out = capsys.readouterr().out
     for flag in ("--materials", "--resume", "--no-apparatus", "--gallery", "--no-gallery"):
         assert flag in out
+
+
+def test_mixture_pairs_and_mixing():
+    """``campaigns.mixtures``: the pairs are distinct, reproducible from the seed, weights in
+    range; a mixture is the weighted sum where both are valid and invalid elsewhere; the report's
+    summary counts what the rows say."""
+    import argparse
+
+    from campaigns import mixtures
+    from twoscale import merl
+
+    names = [f"m{i}" for i in range(6)]
+    pairs = mixtures.draw_pairs(names, 15, seed=3)  # every one of the 15 pairs, once
+    assert len({frozenset(p[:2]) for p in pairs}) == 15
+    assert all(a != b and 0.3 <= w <= 0.7 for a, b, w in pairs)
+    assert pairs == mixtures.draw_pairs(names, 15, seed=3)
+    assert mixtures.draw_pairs(names, 4, seed=3) != mixtures.draw_pairs(names, 4, seed=4)
+    with pytest.raises(ValueError, match="pairs"):
+        mixtures.draw_pairs(names, 16)
+
+    rng = np.random.default_rng(0)
+    shape = merl.SHAPE
+    va, vb = rng.random(shape + (3,)), rng.random(shape + (3,))
+    ok_a, ok_b = rng.random(shape) > 0.2, rng.random(shape) > 0.2
+    m = mixtures.mix(
+        merl.MerlData(values=va, valid=ok_a), merl.MerlData(values=vb, valid=ok_b), 0.4
+    )
+    both = ok_a & ok_b
+    np.testing.assert_array_equal(m.valid, both)
+    np.testing.assert_allclose(m.values[both], 0.4 * va[both] + 0.6 * vb[both])
+    assert np.all(m.values[~both] == 0.0)
+    with pytest.raises(ValueError, match="weight"):
+        mixtures.mix(merl.MerlData(values=va, valid=ok_a), merl.MerlData(values=vb, valid=ok_b), 2)
+
+    rows = [
+        mixtures.Outcome("x", 0, 0, 0.1, 0.2, 1.0, 1.5, "plastic", True, 0, 20.0, 5.0),
+        mixtures.Outcome("y", 0, 0, 0.3, 0.2, 4.0, 1.5, "conductor", True, 1, 30.0, 5.0),
+    ]
+    text = mixtures.report(
+        rows, [("a", "b", 0.5), ("c", "d", 0.4)], argparse.Namespace(n=2, seed=0)
+    )
+    assert "below GGX + Lambert's on 1 of 2 (not on: y)" in text
+    assert "Linear RMSE above 2× GGX + Lambert's on 1: y." in text
+    assert "median 0.0 %" in text  # improvements 50 % and −50 %
