@@ -472,8 +472,12 @@ def test_choose_type_a_conductor_without_the_measured_body_loses():
     assert choose_type(best, {**body, "conductor": red * 0.9, "plastic": red * 0.3})[0] == (
         "conductor"
     )
-    # The same floor under a bright highlight (a metal reflecting 60 % of the light): not a body.
-    assert choose_type(best, {**body, "albedo": np.full(3, 0.6)})[0] == "conductor"
+    # A body carrying a fifth of the light (π ρ ≈ 0.084 of 0.4: a metal mixed with a fabric) still
+    # counts: left out, it renders black around the highlight.
+    assert choose_type(best, {**body, "albedo": np.full(3, 0.4)})[0] == "plastic"
+    # The faint scatter under a bright metal's highlight (π ρ ≈ 0.017 of 0.6, 3 %): not a body.
+    faint = {k: v * 0.2 for k, v in body.items() if k != "albedo"}
+    assert choose_type(best, {**faint, "albedo": np.full(3, 0.6)})[0] == "conductor"
     # The plastic misses the body even more than the conductor: no reason to switch.
     assert choose_type(best, {**body, "plastic": red * 1e-8})[0] == "conductor"
     # Without body levels the rule is off.

@@ -155,10 +155,16 @@ METAL_RHO_D = 0.01
 
 #: A measured diffuse body counts when its Lambertian albedo ``π ρ_floor`` (luminance of the
 #: floor level, :func:`~twoscale.fit.starts.floor_level`) is at least this fraction of all the
-#: light the material reflects (its measured bihemispherical albedo): a body that carries much
-#: of the material's look, not the faint scatter under a metal's highlight (a few % of its
-#: light) or the dim body of a black plastic (whose highlight then carries the look).
-BODY_SHARE = 0.5
+#: light the material reflects (its measured bihemispherical albedo): twice the faint scatter
+#: under a bare metal's highlight, which is at most 5 % on the metal stand-ins (chrome and
+#: chrome-steel 0.0 %, tungsten-carbide 1 %, nickel 2 %, hematite 3 %, aluminium 5 %). Until
+#: 2026-12-05 this was 0.5, and a body carrying 22-38 % of the light did not count: a mixture of
+#: aluminium and light-brown fabric rendered as a black sphere with a highlight (its conductor fit
+#: 2.9 % lower in log RMS, reproducing 2 % of the measured floor) and dark-blue-paint as a rough
+#: metal darkening towards the rim (its conductor made the body with a flat diffraction lobe,
+#: σ_s = 1 µm, b = 0.013 µm). On the 60 stand-ins any value from 0.06 to 0.38 makes the same
+#: choices (the conductors' shares: gold-metallic-paint 5.6 %, then dark-blue-paint 38 %).
+BODY_SHARE = 0.1
 
 
 #: A conductor fit that reproduces less than this fraction of a counting body leaves it out: the
@@ -174,8 +180,8 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's fit, and the
     data's bihemispherical albedo.
 
-    A measured diffuse body that carries much of the light (its albedo ``π ρ_floor`` at least
-    :data:`BODY_SHARE` of the data's albedo) makes the plastic win whatever the RMS, when the
+    A measured diffuse body that is more than the faint scatter under a metal's highlight (its
+    albedo ``π ρ_floor`` at least :data:`BODY_SHARE` of the data's albedo) makes the plastic win whatever the RMS, when the
     conductor fit leaves it out (its floor below :data:`MISSING_BODY` of the measured one and
     the plastic's closer: it would render black with a highlight), and when the plastic fit
     reproduces it (its floor at least :data:`MISSING_BODY` of the measured one): a conductor
