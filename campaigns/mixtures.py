@@ -22,7 +22,6 @@ repository. Skips with a message when the Neural-BRDF weights are absent.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import subprocess
 import sys
@@ -95,16 +94,18 @@ class Outcome:
         return 1.0 - self.log_full / self.log_ggx
 
 
-def _run_cli(path: Path, out: Path, extra: list[str]) -> tuple[int, float, dict | None]:
+def _run_cli(path: Path, out: Path, extra: list[str]):
+    """``(exit code, wall time, FitResult or None)`` of one CLI run writing into ``out``."""
+    from twoscale.fit import load_result
+
     args = [sys.executable, "-m", "twoscale.fit", str(path), "--out", str(out), "--quiet", *extra]
     t = time.perf_counter()
     proc = subprocess.run(args, capture_output=True, text=True)
     wall = time.perf_counter() - t
-    record = out / "params.json"
-    data = json.loads(record.read_text()) if proc.returncode == 0 and record.exists() else None
     if proc.returncode != 0:
         print(f"  exit {proc.returncode}: {proc.stderr.strip()[-300:]}", file=sys.stderr)
-    return proc.returncode, wall, data
+        return proc.returncode, wall, None
+    return proc.returncode, wall, load_result(out / "params.json")
 
 
 def fit_pair(path: Path, work: Path) -> Outcome:
@@ -114,14 +115,11 @@ def fit_pair(path: Path, work: Path) -> Outcome:
     rc_g, t_g, ggx = _run_cli(path, work / name / "ggx", ["--baseline", "ggx"])
     row = Outcome(name, rc_f, rc_g, time_full=t_f, time_ggx=t_g)
     if full is not None:
-        row.log_full = full["metrics"]["rmse_log"]
-        row.lin_full = full["metrics"]["rmse_linear"]
-        row.material = full["params"].get("material", "")
-        row.converged = bool(full["convergence"].get("converged"))
-        row.n_warnings = len(full.get("warnings") or [])
+        row.log_full, row.lin_full = full.rmse_log, full.rmse_linear
+        row.material, row.converged = full.material, full.converged
+        row.n_warnings = len(full.warnings)
     if ggx is not None:
-        row.log_ggx = ggx["metrics"]["rmse_log"]
-        row.lin_ggx = ggx["metrics"]["rmse_linear"]
+        row.log_ggx, row.lin_ggx = ggx.rmse_log, ggx.rmse_linear
     return row
 
 

@@ -181,10 +181,10 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     data's bihemispherical albedo.
 
     A measured diffuse body that is more than the faint scatter under a metal's highlight (its
-    albedo ``π ρ_floor`` at least :data:`BODY_SHARE` of the data's albedo) makes the plastic win whatever the RMS, when the
-    conductor fit leaves it out (its floor below :data:`MISSING_BODY` of the measured one and
-    the plastic's closer: it would render black with a highlight), and when the plastic fit
-    reproduces it (its floor at least :data:`MISSING_BODY` of the measured one): a conductor
+    albedo ``π ρ_floor`` at least :data:`BODY_SHARE` of the data's albedo) makes the plastic
+    win whatever the RMS, when the conductor fit leaves it out (its floor below
+    :data:`MISSING_BODY` of the measured one and the plastic's closer: it would render black
+    with a highlight), and when the plastic fit reproduces it (its floor at least :data:`MISSING_BODY` of the measured one): a conductor
     has no diffuse layer, and its fit of such a material makes the body with its lobes (on the
     60 stand-ins of 2026-12-04: a wide EPD, β ≈ 0.6, or a flat diffraction lobe, σ_s ≈ 1 µm
     and b ≈ 0.01–0.05 µm, on every material with such a body), which renders a rough metal.
