@@ -63,7 +63,11 @@ def test_started_as_cli():
     assert started_as_cli(["python", "-m", "twoscale.fit", "a.binary"])
     assert started_as_cli(["/usr/bin/python3", "-X", "importtime", "-m", "twoscale.fit"])
     assert not started_as_cli(["python", "-m", "pytest", "twoscale.fit"])
-    assert not started_as_cli(["python", "script.py", "-m", "twoscale.fit"][:2])
+    assert started_as_cli(["python", "-W", "ignore", "-Bm", "twoscale.fit"])
+    # A -m among a script's or a command's arguments is theirs, not the interpreter's.
+    assert not started_as_cli(["python", "script.py", "-m", "twoscale.fit"])
+    assert not started_as_cli(["python", "-c", "pass", "-m", "twoscale.fit"])
+    assert not started_as_cli(["python", "-", "-m", "twoscale.fit"])
     assert not started_as_cli(["python", "-m"])
     assert not started_as_cli([])
 

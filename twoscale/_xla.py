@@ -107,11 +107,25 @@ def hoist_large_constants(environ=None, modules=None) -> bool:
     return True
 
 
+#: The interpreter's options that take the next word as their value (``python -X importtime``).
+_OPTIONS_WITH_VALUE = ("-X", "-W", "--check-hash-based-pycs")
+
+
 def started_as_cli(argv=None) -> bool:
     """Whether this process is ``python [options] -m M ...`` for an ``M`` of :data:`CLI_MODULES`
-    (``argv``: default ``sys.orig_argv``, the interpreter's own command line)."""
+    (``argv``: default ``sys.orig_argv``, the interpreter's own command line). Only the
+    interpreter's options are read: a ``-m`` among a script's or a ``-c`` command's arguments
+    (``python script.py -m twoscale.fit``) is the script's."""
     argv = list(getattr(sys, "orig_argv", []) if argv is None else argv)
-    if "-m" not in argv:
-        return False
-    i = argv.index("-m")
-    return i + 1 < len(argv) and argv[i + 1] in CLI_MODULES
+    i = 1
+    while i < len(argv):
+        arg = argv[i]
+        if arg in _OPTIONS_WITH_VALUE:
+            i += 2
+            continue
+        if not arg.startswith("-") or arg == "-" or arg.startswith("-c"):
+            return False  # a script, standard input or a command: the rest is theirs
+        if not arg.startswith("--") and arg.endswith("m"):  # -m, or flags ending in it (-Bm)
+            return i + 1 < len(argv) and argv[i + 1] in CLI_MODULES
+        i += 1
+    return False
