@@ -484,6 +484,55 @@ def test_choose_type_a_conductor_without_the_measured_body_loses():
     assert choose_type(best)[0] == "conductor"
 
 
+def test_dielectric_albedo_bound():
+    """The most a dielectric interface reflects, as the type choice weighs a highlight against:
+    the hemispherical average of Fresnel's reflectance (0.0918 at η = 1.5, the textbook value),
+    more for a higher index, less through MERL's apparatus fall-off."""
+    from twoscale.fit.material_type import dielectric_albedo_bound
+
+    assert dielectric_albedo_bound(None, 1.5) == pytest.approx(0.0918, abs=2e-4)
+    assert dielectric_albedo_bound(None, 1.0) == pytest.approx(0.0, abs=1e-12)
+    bare = dielectric_albedo_bound(None)
+    assert bare > dielectric_albedo_bound(None, 1.5)
+    late = dielectric_albedo_bound((1.0, 8.0))  # a knee late and steep: little is lost
+    early = dielectric_albedo_bound((1.0, 1.0))  # falling from normal incidence on
+    assert bare > late > early > 0.0 and late > 0.7 * bare and early < 0.3 * bare
+
+
+def test_choose_type_without_a_body_the_highlight_decides():
+    """No measured body: a highlight brighter than any dielectric interface reflects through
+    the same fall-off is a metal's (conductor, though the plastic's RMS is 3 % lower, as on
+    chrome and tungsten-carbide), a dim one a dielectric's (plastic, though the conductor's RMS
+    is 2.2 % lower, as on black-phenolic); a much lower RMS still wins."""
+    from twoscale import TwoScaleParams
+    from twoscale.fit.material_type import EVIDENCE_RTOL, choose_type
+
+    cond = TwoScaleParams.conductor(0.001, 0.4, (1.3, 1.5, 1.5), (0.5, 1e-3, 1e-4))
+    plastic = TwoScaleParams.plastic(0.001, 0.4, (1.6, 1.5, 1.5), (0.003, 0.003, 0.004))
+    floor = np.full(3, 1e-4)  # π ρ ≈ 3e-4: no body
+    bright = {"measured": floor, "conductor": floor * 0.5, "plastic": floor * 3.0}
+    bright |= {"albedo": np.full(3, 0.127), "fall_off": (1.06, 1.0)}  # bound 0.022
+    chosen, reason = choose_type(
+        {"conductor": (0.1495, cond), "plastic": (0.1451, plastic)}, bright
+    )
+    assert chosen == "conductor" and "more than a dielectric" in reason
+    # Without the fall-off the bound is 0.120: a highlight of 0.11 is within a dielectric's reach.
+    unfallen = {**bright, "albedo": np.full(3, 0.11), "fall_off": None}
+    best = {"conductor": (0.1495, cond), "plastic": (0.1451, plastic)}
+    assert choose_type(best, unfallen)[0] == "plastic"
+    far = (1.0 + 1.5 * EVIDENCE_RTOL) * 0.1451
+    assert choose_type({"conductor": (far, cond), "plastic": (0.1451, plastic)}, bright)[0] == (
+        "plastic"
+    )
+    dim = {**bright, "albedo": np.full(3, 0.024), "fall_off": (1.63, 3.97)}  # bound 0.059
+    chosen, reason = choose_type({"conductor": (0.0779, cond), "plastic": (0.0797, plastic)}, dim)
+    assert chosen == "plastic" and "no more than a dielectric" in reason
+    far = (1.0 + 1.5 * EVIDENCE_RTOL) * 0.0779
+    assert choose_type({"conductor": (0.0779, cond), "plastic": (far, plastic)}, dim)[0] == (
+        "conductor"
+    )
+
+
 def test_bihemispherical_albedo_of_a_lambertian_table():
     """The albedo the type choice weighs a body against: ρ for a Lambertian table (to the
     quadrature's 5 %), less where cells are invalid."""

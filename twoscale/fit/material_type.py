@@ -10,6 +10,8 @@ import numpy as np
 
 from twoscale.baselines import CookTorranceConfig
 from twoscale.fit.starts import floor_level
+from twoscale.fresnel import dielectric
+from twoscale.model import PAPER_KNEE, apparatus_factor
 
 MATERIALS = ("conductor", "plastic", "subsurface")
 
@@ -173,12 +175,43 @@ BODY_SHARE = 0.1
 MISSING_BODY = 0.5
 
 
+#: The highest refractive index of the dielectrics a plastic-type material's interface is made
+#: of: the resins, binders and fibres of MERL's plastics, paints, phenolics, acrylics, rubbers and
+#: fabrics (acrylic 1.49, polyethylene and rubber ≈ 1.51, nylon and PVC ≈ 1.53-1.54,
+#: polycarbonate and polystyrene 1.59, PET 1.64, phenolic resins up to ≈ 1.7).
+ETA_COAT_MAX = 1.7
+
+
+#: Where the data shows no diffuse body, its highlight's albedo against what a dielectric
+#: interface can reflect (:func:`dielectric_albedo_bound`) decides the type when the two types'
+#: RMS are within this fraction; beyond it the lower RMS wins.
+EVIDENCE_RTOL = 0.1
+
+
+def dielectric_albedo_bound(fall_off=None, eta: float = ETA_COAT_MAX, n: int = 2048) -> float:
+    """The bihemispherical albedo of a smooth dielectric interface of index ``eta`` seen through
+    MERL's apparatus fall-off ``L(θ_i) L(θ_o)``: ``2 ∫ F(θ) L(θ)² cos θ sin θ dθ`` over
+    ``[0, π/2]`` (a mirror reflects θ_i into θ_o = θ_i). ``fall_off``: ``(e, m)`` of
+    ``L(θ) = [1 − (2θ/π)^m]^e`` (docs/model.md §3.11), or ``None`` for none. A rough interface
+    of the same index reflects less (its facets shadow each other), so this bounds every
+    dielectric highlight: 0.092 at η = 1.5 and 0.120 at 1.7 without fall-off."""
+
+    theta = (np.arange(n) + 0.5) * (0.5 * math.pi / n)  # midpoint rule
+    cos = np.cos(theta)
+    f = np.asarray(dielectric(cos, eta), dtype=np.float64)
+    if fall_off is not None:
+        e, m = fall_off
+        f = f * np.asarray(apparatus_factor(cos, float(e), float(m)), dtype=np.float64) ** 2
+    return float(np.sum(2.0 * f * cos * np.sin(theta)) * (0.5 * math.pi / n))
+
+
 def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     """Pick a material type from ``{type: (rms, params)}``; returns ``(type, reason)``.
 
-    ``body``: ``{"measured": (C,), type: (C,), ..., "albedo": (C,)}``: the floor level
-    (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's fit, and the
-    data's bihemispherical albedo.
+    ``body``: ``{"measured": (C,), type: (C,), ..., "albedo": (C,), "fall_off": (e, m) | None}``:
+    the floor level (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's
+    fit, the data's bihemispherical albedo, and the apparatus fall-off of the plastic fit (none
+    when absent).
 
     A measured diffuse body that is more than the faint scatter under a metal's highlight (its
     albedo ``π ρ_floor`` at least :data:`BODY_SHARE` of the data's albedo) makes the plastic
@@ -188,7 +221,11 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     has no diffuse layer, and its fit of such a material makes the body with its lobes (on the
     60 stand-ins of 2026-12-04: a wide EPD, β ≈ 0.6, or a flat diffraction lobe, σ_s ≈ 1 µm
     and b ≈ 0.01–0.05 µm, on every material with such a body), which renders a rough metal.
-    Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
+    Where the data has no such body, its highlight carries the light: brighter (albedo less the
+    body's) than a smooth dielectric interface of index :data:`ETA_COAT_MAX` reflects through the
+    plastic fit's apparatus fall-off (:func:`dielectric_albedo_bound`), it is a metal's and the
+    conductor wins, else the plastic, unless the other type's RMS is lower by more than
+    :data:`EVIDENCE_RTOL`. Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
     plastic fit without a diffuse layer (``ρ_d < METAL_RHO_D`` in every channel) is a metal in
     disguise (conductor wins), and otherwise a conductor fit with ``k < DIELECTRIC_K`` in every
     channel is a dielectric in disguise (plastic wins).
@@ -222,6 +259,20 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
                     f"floor ({frac_c:.0%} of the measured one) with its lobes; the plastic's "
                     f"diffuse layer gives {frac_p:.0%}"
                 )
+        else:
+            # No body: the highlight carries (nearly) all the light. Brighter than any dielectric
+            # interface reflects through the same fall-off, it is a metal's; else a dielectric's.
+            highlight = float(np.asarray(body["albedo"]) @ w) - body_albedo
+            bound = dielectric_albedo_bound(body.get("fall_off"))
+            kind = "conductor" if highlight > bound else "plastic"
+            other = "plastic" if kind == "conductor" else "conductor"
+            if best[kind][0] <= (1.0 + EVIDENCE_RTOL) * best[other][0]:
+                side = "more" if kind == "conductor" else "no more"
+                return kind, (
+                    f"no diffuse body ({share:.0%} of the light); the highlight's albedo "
+                    f"{highlight:.3g} is {side} than a dielectric interface reflects "
+                    f"(η ≤ {ETA_COAT_MAX}: {bound:.3g}); RMS within {EVIDENCE_RTOL:.0%}"
+                )
     if abs(rms_c - rms_p) > TYPE_TIE_RTOL * min(rms_c, rms_p):
         return winner, "lower RMS"
     k = np.asarray(p_c.k)
@@ -245,7 +296,12 @@ def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model
     on the MERL grid; ``groups``: ``{type: its group}``), and the data's bihemispherical albedo."""
-    out = {"measured": prep.stats.floor, "albedo": prep.stats.albedo}
+    out = {"measured": prep.stats.floor, "albedo": prep.stats.albedo, "fall_off": None}
+    plastic = best.get("plastic")
+    cfg = groups["plastic"].adapter.config if plastic is not None else None
+    if cfg is not None and getattr(cfg, "apparatus", False):
+        m = plastic[1].m if cfg.apparatus_knee else PAPER_KNEE
+        out["fall_off"] = (float(np.max(plastic[1].e)), float(np.max(m)))
     for mat, (_rms, params) in best.items():
         grid = np.asarray(groups[mat].adapter.evaluate_grid(params, "lower"))
         out[mat] = floor_level(grid, prep.valid_grid)
