@@ -524,6 +524,20 @@ def test_choose_type_without_a_body_the_highlight_decides():
     assert choose_type({"conductor": (far, cond), "plastic": (0.1451, plastic)}, bright)[0] == (
         "plastic"
     )
+    # A floor beyond a bare metal's faint scatter (9 % of the light, as in a mixture of aluminium
+    # and alum-bronze) that the conductor fit leaves out: the highlight does not decide (the
+    # conductor would render black where the measured sphere is warm brown); the RMS does.
+    warm = np.full(3, 0.0032)  # π ρ ≈ 0.010 of 0.11: 9 %
+    glow = {**bright, "measured": warm, "conductor": warm * 0.1, "plastic": warm * 0.9}
+    glow["albedo"] = np.full(3, 0.11)
+    chosen, reason = choose_type({"conductor": (0.1587, cond), "plastic": (0.1536, plastic)}, glow)
+    assert chosen == "plastic" and reason == "lower RMS"
+    # ...unless the conductor fit makes that floor with its lobes.
+    chosen, _ = choose_type(
+        {"conductor": (0.1587, cond), "plastic": (0.1536, plastic)},
+        {**glow, "conductor": warm * 0.8},
+    )
+    assert chosen == "conductor"
     dim = {**bright, "albedo": np.full(3, 0.024), "fall_off": (1.63, 3.97)}  # bound 0.059
     chosen, reason = choose_type({"conductor": (0.0779, cond), "plastic": (0.0797, plastic)}, dim)
     assert chosen == "plastic" and "no more than a dielectric" in reason

@@ -169,6 +169,15 @@ METAL_RHO_D = 0.01
 BODY_SHARE = 0.1
 
 
+#: The most light the faint scatter under a bare metal's highlight carries (its share of the
+#: measured albedo; aluminium's 4.8 % is the most among the metal stand-ins). A bodiless material
+#: whose floor carries more, and whose conductor fit leaves that floor out, is not typed by its
+#: highlight (:func:`choose_type`): a conductor of a 50/50 mixture of aluminium and alum-bronze
+#: (9 % of its light in a warm floor) rendered black with a bluish glow where the measured sphere
+#: is warm brown, as the plastic fit (3.3 % lower in RMS) renders it.
+FAINT_SHARE = 0.05
+
+
 #: A conductor fit that reproduces less than this fraction of a counting body leaves it out: the
 #: log metric weighs a dim body little against a bright highlight, so such a fit can have the
 #: lower RMS and still render as a black object with a highlight. The plastic wins.
@@ -224,11 +233,12 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     Where the data has no such body, its highlight carries the light: brighter (albedo less the
     body's) than a smooth dielectric interface of index :data:`ETA_COAT_MAX` reflects through the
     plastic fit's apparatus fall-off (:func:`dielectric_albedo_bound`), it is a metal's and the
-    conductor wins, else the plastic, unless the other type's RMS is lower by more than
-    :data:`EVIDENCE_RTOL`. Otherwise the lower RMS wins, unless the two are within :data:`TYPE_TIE_RTOL`: then a
-    plastic fit without a diffuse layer (``ρ_d < METAL_RHO_D`` in every channel) is a metal in
-    disguise (conductor wins), and otherwise a conductor fit with ``k < DIELECTRIC_K`` in every
-    channel is a dielectric in disguise (plastic wins).
+    conductor wins (not when a floor beyond :data:`FAINT_SHARE` of the light is one the
+    conductor fit leaves out), else the plastic, unless the other type's RMS is lower by more
+    than :data:`EVIDENCE_RTOL`. Otherwise the lower RMS wins, unless the two are within
+    :data:`TYPE_TIE_RTOL`: then a plastic fit without a diffuse layer (``ρ_d < METAL_RHO_D`` in
+    every channel) is a metal in disguise (conductor wins), and otherwise a conductor fit with
+    ``k < DIELECTRIC_K`` in every channel is a dielectric in disguise (plastic wins).
     """
     order = sorted(best, key=lambda t: best[t][0])
     winner = order[0]
@@ -266,7 +276,10 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
             bound = dielectric_albedo_bound(body.get("fall_off"))
             kind = "conductor" if highlight > bound else "plastic"
             other = "plastic" if kind == "conductor" else "conductor"
-            if best[kind][0] <= (1.0 + EVIDENCE_RTOL) * best[other][0]:
+            # A floor beyond a bare metal's faint scatter that the conductor fit leaves out would
+            # render black: then the highlight does not decide (the RMS does, below).
+            dark = kind == "conductor" and share > FAINT_SHARE and frac_c < MISSING_BODY
+            if not dark and best[kind][0] <= (1.0 + EVIDENCE_RTOL) * best[other][0]:
                 side = "more" if kind == "conductor" else "no more"
                 return kind, (
                     f"no diffuse body ({share:.0%} of the light); the highlight's albedo "
