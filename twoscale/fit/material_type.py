@@ -11,7 +11,7 @@ import numpy as np
 from twoscale.baselines import CookTorranceConfig
 from twoscale.fit.starts import floor_level
 from twoscale.fresnel import dielectric
-from twoscale.model import PAPER_KNEE, apparatus_factor
+from twoscale.model import LUMINANCE, PAPER_KNEE, apparatus_factor
 
 MATERIALS = ("conductor", "plastic", "subsurface")
 
@@ -204,7 +204,6 @@ def dielectric_albedo_bound(fall_off=None, eta: float = ETA_COAT_MAX, n: int = 2
     ``L(θ) = [1 − (2θ/π)^m]^e`` (docs/model.md §3.11), or ``None`` for none. A rough interface
     of the same index reflects less (its facets shadow each other), so this bounds every
     dielectric highlight: 0.092 at η = 1.5 and 0.120 at 1.7 without fall-off."""
-
     theta = (np.arange(n) + 0.5) * (0.5 * math.pi / n)  # midpoint rule
     cos = np.cos(theta)
     f = np.asarray(dielectric(cos, eta), dtype=np.float64)
@@ -247,7 +246,7 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     rms_c, p_c = best["conductor"]
     rms_p, p_p = best["plastic"]
     if body is not None:
-        w = np.array([0.2126, 0.7152, 0.0722])
+        w = np.asarray(LUMINANCE)
         measured = float(np.asarray(body["measured"]) @ w)
         frac_c = float(np.asarray(body["conductor"]) @ w) / max(measured, 1e-300)
         frac_p = float(np.asarray(body["plastic"]) @ w) / max(measured, 1e-300)
@@ -308,13 +307,13 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
 def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model
-    on the MERL grid; ``groups``: ``{type: its group}``), and the data's bihemispherical albedo."""
+    on the MERL grid; ``groups``: ``{type: its group}``), the data's bihemispherical albedo, and
+    the plastic fit's apparatus fall-off ``(e, m)`` (None without the factor or a plastic fit)."""
     out = {"measured": prep.stats.floor, "albedo": prep.stats.albedo, "fall_off": None}
-    plastic = best.get("plastic")
-    cfg = groups["plastic"].adapter.config if plastic is not None else None
-    if cfg is not None and getattr(cfg, "apparatus", False):
-        m = plastic[1].m if cfg.apparatus_knee else PAPER_KNEE
-        out["fall_off"] = (float(np.max(plastic[1].e)), float(np.max(m)))
+    if "plastic" in best and groups["plastic"].adapter.config.apparatus:
+        params, knee = best["plastic"][1], groups["plastic"].adapter.config.apparatus_knee
+        m = params.m if knee else PAPER_KNEE
+        out["fall_off"] = (float(np.max(params.e)), float(np.max(m)))
     for mat, (_rms, params) in best.items():
         grid = np.asarray(groups[mat].adapter.evaluate_grid(params, "lower"))
         out[mat] = floor_level(grid, prep.valid_grid)

@@ -21,8 +21,9 @@ import math
 import numpy as np
 
 from twoscale.merl import axis_angles, bihemispherical_albedo
+from twoscale.model import LUMINANCE
 
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
+_LUMA = np.asarray(LUMINANCE)
 
 
 @dataclasses.dataclass(frozen=True)
