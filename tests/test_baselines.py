@@ -161,3 +161,23 @@ def test_dict_roundtrip_and_config_validation():
     assert q.to_dict() == p.to_dict()
     with pytest.raises(ValueError, match="distribution"):
         CookTorranceConfig("phong")
+
+
+@pytest.mark.parametrize("dist", ["ggx", "beckmann"])
+def test_uncorrelated_shadowing(dist):
+    """``shadowing="uncorrelated"``: the specular term carries ``G1(i) G1(o)`` instead of the
+    height-correlated ``1/(1 + Λ_i + Λ_o)``; the body is unchanged; the switch round-trips."""
+    p = CookTorranceParams(0.3, [0.9, 0.5, 0.05], [0.0, 0.0, 0.0])
+    wi, wo = _dir(1.45, 0.0), _dir(1.5, math.pi)  # both near grazing: G far from 1
+    cor = np.asarray(cook_torrance(p, wi, wo, CookTorranceConfig(dist)))
+    unc_cfg = CookTorranceConfig(dist, shadowing="uncorrelated")
+    unc = np.asarray(cook_torrance(p, wi, wo, unc_cfg))
+    lam = _lambda_ggx if dist == "ggx" else _lambda_beckmann
+    li, lo = (float(lam(math.tan(t) ** 2, 0.3)) for t in (1.45, 1.5))
+    assert li > 0.3 and lo > 0.3
+    np.testing.assert_allclose(unc / cor, (1 + li + lo) / ((1 + li) * (1 + lo)), rtol=1e-12)
+    assert CookTorranceConfig.from_dict(unc_cfg.to_dict()) == unc_cfg
+    assert unc_cfg.to_dict()["shadowing"] == "uncorrelated"
+    assert CookTorranceConfig.from_dict({"distribution": dist}).shadowing == "correlated"
+    with pytest.raises(ValueError, match="shadowing"):
+        CookTorranceConfig(dist, shadowing="joint")

@@ -315,3 +315,30 @@ def test_cli_passes_the_merl_protocol(
     assert seen["material"] == "auto"
     assert seen["fresnel"] == fresnel
     assert seen["metric"] == metric
+
+
+@pytest.mark.parametrize("baseline", [[], ["--baseline", "ggx"]])
+def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
+    """``--shadowing uncorrelated`` reaches the two-scale model's configuration and the
+    baseline's alike; the default is the reference's correlated form."""
+    import twoscale.fit.driver as driver
+    from twoscale.baselines import CookTorranceConfig
+    from twoscale.fit import merl_protocol
+
+    seen = []
+
+    def spy(data, *, config, material, **kwargs):
+        seen.append(config)
+        raise driver.FitError("stopped by the test")
+
+    monkeypatch.setattr(driver, "fit", spy)
+    for flags in ([], ["--shadowing", "uncorrelated"]):
+        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *baseline, *flags])
+        assert rc == EXIT_FIT
+    assert [c.shadowing for c in seen] == ["correlated", "uncorrelated"]
+    if baseline:
+        assert seen[1] == CookTorranceConfig(
+            "ggx", apparatus=True, apparatus_knee=True, shadowing="uncorrelated"
+        )
+    else:
+        assert seen[1] == merl_protocol(shadowing="uncorrelated")

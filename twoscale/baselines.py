@@ -7,7 +7,9 @@
   Beckmann ``exp(−tan²θ_h/α²) / (π α² cos⁴θ_h)``; one roughness ``α`` shared by the channels;
 - ``G = 1/(1 + Λ(θ_i) + Λ(θ_o))``, the height-correlated Smith term (Heitz 2014, Eq. 99) with the
   distribution's own ``Λ``: GGX ``(√(1 + α² tan²θ) − 1)/2``, Beckmann
-  ``(erf μ − 1)/2 + e^{−μ²}/(2μ√π)``, ``μ = 1/(α tan θ)``.
+  ``(erf μ − 1)/2 + e^{−μ²}/(2μ√π)``, ``μ = 1/(α tan θ)``; with
+  ``CookTorranceConfig(shadowing="uncorrelated")`` the product ``G1(i) G1(o)``,
+  ``G1 = 1/(1 + Λ)``.
 
 Seven parameters (α, F0 ×3, ρ_d ×3), the usual "microfacet + Lambert" model that a measured BRDF is
 compared against. With ``CookTorranceConfig(apparatus=True)`` the specular term is multiplied by
@@ -27,6 +29,7 @@ import jax.numpy as jnp
 from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
+from twoscale.config import SHADOWING
 from twoscale.model import PAPER_KNEE, apparatus_factor
 from twoscale.params import bounds_for
 
@@ -56,11 +59,15 @@ class CookTorranceConfig:
             ``L(θ) = [1 − (2θ/π)^m]^e`` (adds ``e``; m = 2).
         apparatus_knee: with ``apparatus``, also fit the knee exponent ``m`` (adds ``m``), as
             the two-scale model's MERL protocol does.
+        shadowing: ``"correlated"`` (height-correlated Smith, ``1/(1 + Λ_i + Λ_o)``) or
+            ``"uncorrelated"`` (``G1(i) G1(o)``), as the two-scale model's switch of the same
+            name (docs/model.md §3.3), so that a comparison can give both models the same form.
     """
 
     distribution: str = "ggx"
     apparatus: bool = False
     apparatus_knee: bool = False
+    shadowing: str = "correlated"
 
     def __post_init__(self):
         if self.distribution not in _DISTRIBUTIONS:
@@ -70,6 +77,8 @@ class CookTorranceConfig:
         for name in ("apparatus", "apparatus_knee"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        if self.shadowing not in SHADOWING:
+            raise ValueError(f"shadowing must be one of {SHADOWING}, got {self.shadowing!r}")
 
     @property
     def fits_knee(self) -> bool:
@@ -96,6 +105,7 @@ class CookTorranceConfig:
             "distribution": self.distribution,
             "apparatus": self.apparatus,
             "apparatus_knee": self.apparatus_knee,
+            "shadowing": self.shadowing,
         }
 
     @classmethod
@@ -104,6 +114,7 @@ class CookTorranceConfig:
             distribution=d.get("distribution", "ggx"),
             apparatus=bool(d.get("apparatus", False)),
             apparatus_knee=bool(d.get("apparatus_knee", False)),
+            shadowing=d.get("shadowing", "correlated"),
         )
 
 
@@ -232,7 +243,10 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
     else:
         d = jnp.exp(-tan2_h / a2) / (jnp.pi * a2 * cos4_h)
         lam_i, lam_o = _lambda_beckmann(tan2_i, alpha), _lambda_beckmann(tan2_o, alpha)
-    g = 1.0 / (1.0 + lam_i + lam_o)
+    if config.shadowing == "correlated":
+        g = 1.0 / (1.0 + lam_i + lam_o)
+    else:
+        g = 1.0 / ((1.0 + lam_i) * (1.0 + lam_o))
     spec = d * g / (4.0 * ci * co)
     if config.apparatus:
         if params.e is None:
