@@ -206,6 +206,24 @@ def test_summary_without_exceptions():
     assert "on no material. Above it by less than that" in text and "chrome-steel (0.1 vs" in text
     assert "better baseline's (all valid cells): on no material." in text
     assert "1 of 1 materials with an unambiguous expected type chosen correctly (100 %)" in text
+    assert "the metric the fits minimise" not in text  # rows without it: no sentence
+
+
+def test_summary_special_case_on_the_fitted_metric():
+    """Above the special case in plain log RMSE but not on the metric the fits minimise: both
+    are said, and the fitted metric's comparison is counted apart."""
+    low = _row("fruitwood-241", 0.0434, 0.0433, 0.0383, 0.0399)
+    low.rmse_fit = {"full": 0.0900017, "specular": 0.0900031}
+    high = _row("white-marble", 0.30, 0.29, 0.35, 0.36)
+    high.rmse_fit = {"full": 0.25, "specular": 0.24}
+    text = "\n".join(campaign.summary_sentences([low, high]))
+    assert "fruitwood-241 (0.0434 vs 0.0433, +0.23 %; on the fitted metric 0.0900017 vs " in text
+    assert "0.0900031, lower)" in text
+    assert (
+        "white-marble (0.3 vs 0.29, +3.4 %; on the fitted metric 0.25 vs 0.24, not lower)" in text
+    )
+    assert "above its special case by more than that tolerance on 1 of 2 materials: " in text
+    assert "white-marble (0.25 vs 0.24)." in text
     assert campaign.summary_sentences([Row("x", "y", error="E")]) == [
         "No material was fitted with all four models."
     ]
