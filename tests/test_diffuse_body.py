@@ -67,3 +67,31 @@ def test_diffuse_fresnel_config():
     from twoscale.fit.adapters import config_from_dict, config_to_dict
 
     assert config_from_dict(config_to_dict(LAMBERT)) == LAMBERT
+
+
+def test_conductor_floor_adds_rho_over_pi():
+    """``ModelConfig(conductor_floor=True)``: the conductor's lobes plus a Lambertian floor
+    ``ρ_d/π`` on every path (per direction and on the MERL grid), gradient ``1/π`` per
+    direction and channel; the flag means nothing for a dielectric (normalised to False)."""
+    bare_cfg = ModelConfig(material="conductor")
+    floor_cfg = ModelConfig(material="conductor", conductor_floor=True)
+    assert floor_cfg.has_diffuse and "rho_d" in floor_cfg.param_names
+    assert "rho_d" not in bare_cfg.param_names
+    assert ModelConfig(material="plastic", conductor_floor=True).conductor_floor is False
+    bare = TwoScaleParams.conductor(0.12, 1.3, (0.3, 0.5, 1.2), (3.0, 2.4, 1.9), 0.02, 1.2, 2.0)
+    rho = np.array([0.004, 0.006, 0.01])
+    floor = bare.replace(rho_d=rho)
+    with_floor = np.asarray(twoscale.brdf(floor, WI, WO, floor_cfg))
+    without = np.asarray(twoscale.brdf(bare, WI, WO, bare_cfg))
+    np.testing.assert_allclose(
+        with_floor - without, np.broadcast_to(rho / np.pi, (3, 3)), atol=1e-15
+    )
+    grid = np.asarray(twoscale.brdf_merl(floor, floor_cfg)) - np.asarray(
+        twoscale.brdf_merl(bare, bare_cfg)
+    )
+    above = np.asarray(twoscale.brdf_merl(bare, bare_cfg))[..., 0] > 0
+    np.testing.assert_allclose(
+        grid[above], np.broadcast_to(rho / np.pi, grid[above].shape), atol=1e-12
+    )
+    g = jax.grad(lambda p: twoscale.brdf(p, WI, WO, floor_cfg).sum())(floor)
+    np.testing.assert_allclose(np.asarray(g.rho_d), np.full(3, 3 / np.pi))

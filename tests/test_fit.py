@@ -613,6 +613,27 @@ def test_type_choice_on_synthetic_materials(material, monkeypatch):
     assert json.loads(json.dumps(res.type_selection))["params"] == res.type_selection["params"]
 
 
+def test_conductor_floor_added_after_the_type_choice():
+    """With ``conductor_floor`` and ``material="auto"``, the types are compared without the
+    floor, and the chosen conductor's last stage adds it: the measured floor is recovered
+    (the bare conductor leaves it out), and the record's configuration has it."""
+    from twoscale import ModelConfig, TwoScaleParams
+
+    rho = np.array([0.012, 0.008, 0.005])
+    true = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8, rho_d=rho)
+    cfg = ModelConfig(diffraction=False, apparatus=True, conductor_floor=True)
+    data = synthetic(true, cfg, noise=0.01, seed=6)
+    stages = [Stage(4096, 1, 40), Stage(8192, 1, 20)]
+    res = fit(data, config=cfg, material="auto", schedule=stages)
+    assert res.type_selection["chosen"] == "conductor", res.type_selection
+    assert res.model_config.conductor_floor and res.material == "conductor"
+    assert "rho_d" not in res.type_selection["params"]["conductor"]  # compared without it
+    last = res.stages[-1]["starts"]
+    assert all(e["start"].endswith("+ floor") for e in last)
+    np.testing.assert_allclose(np.asarray(res.params.rho_d), rho, rtol=0.1)
+    assert res.std_errors["rho_d"] is not None
+
+
 def test_no_progress_raises(ct_noisy, monkeypatch):
     """Every solver step rejected from every start: a FitError (the CLI's exit 3), not a result."""
     import twoscale.fit.driver as driver

@@ -47,7 +47,7 @@ class ModelConfig:
         specular: the rough-specular (Cook-Torrance) lobe scaled by ``A_s`` (§2, line 2).
         diffraction: the diffraction lobe ``(1 − A_s) Q G (S*D)`` (§2, line 3). Off ⇒ ``A_s = 1``
             and the nano-scale parameters ``sigma_s, b, c`` are not used.
-        diffuse: the diffuse layer of dielectrics (ignored for conductors).
+        diffuse: the diffuse layer of dielectrics (for conductors, see ``conductor_floor``).
         q_mode: polarisation factor of the diffraction lobe: ``"2F"`` (reference), ``"F"``
             (energy-conserving switch) or ``"full"`` (§3.7).
         shadowing: ``"correlated"`` (height-direction correlated Smith with van Ginneken's factor,
@@ -83,6 +83,11 @@ class ModelConfig:
             to linear sRGB (CIE 1931 observer under ``illuminant``); ``"spectrum"`` returns one
             channel per wavelength.
         illuminant: illuminant of the spectral → RGB conversion (see ``twoscale.spectral``).
+        conductor_floor: a conductor with a faint Lambertian floor ``ρ_d/π`` under its lobes
+            (adds ``rho_d``; needs ``diffuse``; not in the reference, §3.9). Measured metals
+            scatter a little light diffusely (dust, oxide, multiple scattering), which the
+            reference's conductor renders black; the fitter adds the floor to a conductor once
+            the material type is chosen (docs/model.md §8). Set to False for dielectrics.
     """
 
     material: str = "conductor"
@@ -100,6 +105,7 @@ class ModelConfig:
     wavelengths: tuple[float, ...] = field(default=RGB_WAVELENGTHS)
     spectral_output: str = "rgb"
     illuminant: str = "D65"
+    conductor_floor: bool = False
 
     def __post_init__(self):
         _choice("material", self.material, MATERIALS)
@@ -126,6 +132,7 @@ class ModelConfig:
             "apparatus_knee",
             "diffuse_eta2",
             "diffuse_fresnel",
+            "conductor_floor",
         ):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"ModelConfig.{name} = {getattr(self, name)!r}: expected a bool")
@@ -155,6 +162,8 @@ class ModelConfig:
                 f"(only the RGB default {tuple(RGB_WAVELENGTHS)} runs R, G, B)"
             )
         object.__setattr__(self, "wavelengths", wl)  # normalise to a hashable tuple of floats
+        if self.material != "conductor":  # no meaning for a dielectric: one configuration
+            object.__setattr__(self, "conductor_floor", False)
         if not (self.specular or self.diffraction or self.has_diffuse):
             raise ValueError(
                 "ModelConfig: every lobe is switched off (specular, diffraction and, for dielectrics, "
@@ -167,8 +176,9 @@ class ModelConfig:
 
     @property
     def has_diffuse(self) -> bool:
-        """The diffuse layer is evaluated (dielectrics with ``diffuse=True``)."""
-        return self.diffuse and not self.is_conductor
+        """The diffuse layer is evaluated (dielectrics with ``diffuse=True``; a conductor with
+        ``diffuse`` and ``conductor_floor``)."""
+        return self.diffuse and (not self.is_conductor or self.conductor_floor)
 
     @property
     def is_spectral(self) -> bool:

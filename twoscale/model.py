@@ -133,15 +133,18 @@ def _coat_fresnel(cfg: ModelConfig, cos_theta, eta):
 
 
 def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
-    """Diffuse layer of a dielectric [docs/model.md §3.9]; per channel, shape ``(..., N)``.
+    """Diffuse layer of a dielectric, or a conductor's floor [docs/model.md §3.9]; per channel,
+    shape ``(..., N)``.
 
+    conductor (``conductor_floor``): ``ρ_d/π``;
     plastic: ``ρ_d (1−F_i)(1−F_o) / (π (1 − ρ_d F_dr(1/η̄)))`` (``/η̄²`` with ``diffuse_eta2``;
     ``ρ_d/π`` with ``diffuse_fresnel=False``);
     subsurface: ``ρ_d (1−F_i)(1−F_o) [1/(4π(cos θ'_i + cos θ'_o)) + (1 + e^{−(4/3)A√(3(1−ρ_d))})
     e^{−√(3(1−ρ_d))}/(2π)]``, ``cos θ' = √(1 − sin²θ/η²)``, ``A = (1+F_dr)/(1−F_dr)``,
     ``F_dr = F_dr(η̄)``.
     """
-    if cfg.material == "plastic" and not cfg.diffuse_fresnel:  # a Lambertian body
+    lambertian = cfg.material == "plastic" and not cfg.diffuse_fresnel
+    if cfg.is_conductor or lambertian:  # a Lambertian body (or floor)
         return jnp.broadcast_to(rho_d / math.pi, jnp.broadcast_shapes(cos_i.shape, rho_d.shape))
     t_i = 1.0 - _coat_fresnel(cfg, cos_i, eta)
     t_o = 1.0 - _coat_fresnel(cfg, cos_o, eta)

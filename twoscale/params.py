@@ -11,7 +11,7 @@ b          b       µm    [0.01, 350]                                 PSD correl
 c          c       —     [1.01, 5]                                   PSD exponent, Eq. 16
 eta        η       —     conductor [0.01, 6]; dielectric [1, 4]      index, real part (§3.1), per channel
 k          k       —     [0, 10]                                     extinction (conductors), per channel
-rho_d      ρ_d     —     [0, 1]                                      diffuse albedo (dielectrics), §3.9
+rho_d      ρ_d     —     [0, 1]                                      diffuse albedo (dielectrics; a conductor's floor), §3.9
 e          e       —     [0, 5]                                      MERL apparatus exponent, §3.11
 m          m       —     [1, 20]                                     MERL apparatus knee exponent
 =========  ======  ====  ==========================================  ================================
@@ -180,9 +180,10 @@ class TwoScaleParams(eqx.Module):
 
     # ----------------------------------------------------------------------------- constructors
     @classmethod
-    def conductor(cls, beta, p, eta, k, sigma_s=None, b=None, c=None, e=None, m=None):
-        """A conductor: complex index ``η + ik`` per channel, no diffuse layer."""
-        return cls(beta, p, sigma_s, b, c, eta, k, None, e, m, material="conductor")
+    def conductor(cls, beta, p, eta, k, sigma_s=None, b=None, c=None, e=None, m=None, rho_d=None):
+        """A conductor: complex index ``η + ik`` per channel; ``rho_d``: the albedo of its
+        Lambertian floor (``ModelConfig(conductor_floor=True)`` only)."""
+        return cls(beta, p, sigma_s, b, c, eta, k, rho_d, e, m, material="conductor")
 
     @classmethod
     def plastic(cls, beta, p, eta, rho_d, sigma_s=None, b=None, c=None, e=None, m=None):

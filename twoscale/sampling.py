@@ -36,7 +36,7 @@ switches on:
     ``j`` uses the mixture ``(1−t) row_k + t row_{k+1}`` of the rows that bracket
     ``asinh(B_j cos θ_i)``, and the wavelengths are mixed with weights ``(lum_j + 1/N)/2``
     (luminance, with a floor so that every channel is sampled).
-``diffuse`` (dielectrics with the diffuse layer)
+``diffuse`` (dielectrics with the diffuse layer; a conductor's floor)
     Cosine-weighted directions, ``pdf = cos θ_o/π``.
 
 Half-vector densities map to ``wo`` by ``pdf_wo = pdf_h / (4 |wo·h|)``.

@@ -4,6 +4,7 @@
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
         [--full] [--no-apparatus] [--no-apparatus-knee] [--diffuse-fresnel]
         [--fresnel auto|exact|schlick] [--shadowing correlated|uncorrelated]
+        [--no-conductor-floor]
         [--no-compile-cache] [--no-albedo] [--render]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
@@ -20,7 +21,9 @@ on the diffraction-off special case, then on the full model; the exact form wins
 ``schlick`` fixes it. ``--shadowing uncorrelated`` replaces the reference's height-direction
 correlated shadowing by ``G1(i) G1(o)`` (for the baselines too): more shadowing at grazing angles,
 which rough glossy materials such as MERL's woods fit better (3–9 % lower RMS on the stand-ins
-tried; sharp highlights do not change).
+tried; sharp highlights do not change). A conductor gets a faint Lambertian floor ``ρ_d/π`` once
+the fit has chosen that type (measured metals scatter a little light diffusely, which the bare
+conductor renders black); ``--no-conductor-floor`` keeps the reference's conductor.
 
 Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/twoscale/jax`` (default ``~/.cache/twoscale/jax``), so a second run, on any
@@ -67,6 +70,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import dataclasses
 import os
 import shutil
 import sys
@@ -144,6 +148,13 @@ def _parser() -> argparse.ArgumentParser:
         default=False,
         help="a plastic's body seen through the varnish's Fresnel transmission, as in the "
         "reference (default: off, a Lambertian body: MERL's plastics and fabrics fit better)",
+    )
+    ap.add_argument(
+        "--conductor-floor",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="a conductor's faint Lambertian floor rho_d/pi, added once the fit has chosen the "
+        "conductor type (default: on; --no-conductor-floor keeps the reference's conductor)",
     )
     ap.add_argument(
         "--shadowing",
@@ -420,9 +431,12 @@ def _run(args, log) -> int:
             apparatus_knee=args.apparatus_knee,
             diffuse_fresnel=args.diffuse_fresnel,
             shadowing=args.shadowing,
+            conductor_floor=args.conductor_floor,
         )
     if args.example and args.material_type == "auto":
         material = "conductor"  # known for the example: keeps it fast
+    if args.example and not args.baseline:
+        config = dataclasses.replace(config, conductor_floor=False)  # the truth has no floor
     try:
         result = fit(
             data,

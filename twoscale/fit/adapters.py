@@ -228,7 +228,9 @@ class TwoScaleAdapter(AbstractAdapter):
         """
         if self.config.is_spectral:
             return ()
-        return ("eta", "k") if self.config.material == "conductor" else ("rho_d",)
+        if self.config.material == "conductor":
+            return ("eta", "k", "rho_d") if self.config.has_diffuse else ("eta", "k")
+        return ("rho_d",)
 
     def evaluate(self, params, wi, wo):
         from twoscale.model import brdf
@@ -296,7 +298,7 @@ class TwoScaleAdapter(AbstractAdapter):
         cfg = self.config
         wl = float(np.median(np.asarray(cfg.wavelengths)))
         beta = stats.beta
-        spec_peak = np.maximum(stats.peak - (stats.floor if cfg.material != "conductor" else 0), 0)
+        spec_peak = np.maximum(stats.peak - (stats.floor if cfg.has_diffuse else 0), 0)
         diffraction = bool(cfg.diffraction)
         grid_c = START_C if diffraction else (None,)
         grid_a = START_A_SPEC if diffraction else (None,)
@@ -320,6 +322,8 @@ class TwoScaleAdapter(AbstractAdapter):
                 eta = np.full(3, 1.2)
                 k = np.minimum(conductor_k_for_f0(f0, 1.2), START_K_MAX)
                 params = TwoScaleParams.conductor(beta, p, eta, k, **extra)
+                if cfg.has_diffuse:
+                    params = params.replace(rho_d=np.clip(np.pi * stats.floor, 1e-3, 0.95))
             else:
                 f0_d = np.clip(f0, 0.02, 0.1)  # dielectric coats: F0 of a few %
                 eta = np.clip(dielectric_eta_for_f0(f0_d), 1.2, 2.2)

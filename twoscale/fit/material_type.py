@@ -27,11 +27,12 @@ def merl_protocol(
     diffuse_fresnel=False,
     apparatus_knee: bool = True,
     shadowing: str = "correlated",
+    conductor_floor: bool = True,
 ):
     """The model configuration the fitter uses for MERL data unless told otherwise.
 
-    ``ModelConfig(apparatus=True, apparatus_knee=True, diffuse_fresnel=False)`` (material chosen
-    by the fit):
+    ``ModelConfig(apparatus=True, apparatus_knee=True, diffuse_fresnel=False,
+    conductor_floor=True)`` (material chosen by the fit):
 
     - MERL's apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the specular
       lobe, its exponent ``e`` and knee exponent ``m`` fitted (docs/model.md §3.11): MERL's
@@ -49,7 +50,11 @@ def merl_protocol(
       ``"uncorrelated"`` (``G1(i) G1(o)``, more shadowing at grazing angles) fits rough glossy
       stand-ins better (the fitted RMS of the woods and black-oxidized-steel 3–9 % lower), but
       GGX + Lambert's as much or more, sharp lobes not at all and gray-plastic 0.8 % worse:
-      the paper's form stays the default (``campaigns/RESULTS.md``, check of 2026-12-06).
+      the paper's form stays the default (``campaigns/RESULTS.md``, check of 2026-12-06);
+    - a conductor with a faint Lambertian floor ``ρ_d/π`` (``conductor_floor``; §3.9), added
+      once the fit has chosen the conductor type (the types are compared without it): the
+      stand-ins of chrome and tungsten-carbide, rendered black around the highlight by the
+      bare conductor, fit 8–12 % better on the fitted metric with it (ρ_d ≈ 0.003–0.006).
     """
     from twoscale.config import ModelConfig
 
@@ -60,6 +65,7 @@ def merl_protocol(
         apparatus_knee=knee,
         diffuse_fresnel=diffuse_fresnel,
         shadowing=shadowing,
+        conductor_floor=conductor_floor,
     )
 
 
