@@ -651,8 +651,9 @@ def fit(
         config: a :class:`twoscale.ModelConfig`, a :class:`~twoscale.baselines.CookTorranceConfig`
             (baseline), or ``None`` / ``"auto"``: the MERL protocol, :func:`~twoscale.fit.material_type.merl_protocol`
             (MERL's grazing fall-off modelled on the specular lobe, its exponent ``e`` and knee
-            exponent ``m`` fitted; a plastic's body Lambertian) with the material type chosen
-            by the fit. Pass
+            exponent ``m`` fitted; a plastic's body Lambertian; a conductor's faint Lambertian
+            floor, added on the stages after the type choice, see :func:`_split_floors`) with
+            the material type chosen by the fit. Pass
             ``ModelConfig()`` to fit the reference model without them.
         material: override the configuration's material type; ``"auto"`` tries conductor and
             plastic and keeps the better (compared on the last subsample stage; near-ties go to
