@@ -564,7 +564,9 @@ def test_bihemispherical_albedo_of_a_lambertian_table():
 def test_type_choice_on_synthetic_materials(material, monkeypatch):
     """``material="auto"`` types a synthetic conductor as a conductor and a plastic as a plastic;
     the chosen configuration's evaluation (pictures, albedo table) is compiled in the background
-    while the last stage runs, once."""
+    while the last stage runs, once. With ``conductor_floor`` (the conductor's truth has a
+    faint floor), the types are compared without the floor and the chosen conductor's last
+    stage adds it: the floor is recovered and the record's configuration has it."""
     import twoscale.fit.driver as driver
     from twoscale import ModelConfig, TwoScaleParams
 
@@ -577,21 +579,30 @@ def test_type_choice_on_synthetic_materials(material, monkeypatch):
 
     monkeypatch.setattr(driver, "warm_evaluation", spy)
 
+    rho = np.array([0.012, 0.008, 0.005])  # the conductor's floor
     if material == "conductor":
-        true = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+        true = TwoScaleParams.conductor(
+            0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8, rho_d=rho
+        )
     else:
         true = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (0.1, 0.3, 0.6), e=0.8)
-    cfg = ModelConfig(material=material, diffraction=False, apparatus=True)
+    cfg = ModelConfig(material=material, diffraction=False, apparatus=True, conductor_floor=True)
     data = synthetic(true, cfg, noise=0.01, seed=6)
     stages = [Stage(4096, 1, 40), Stage(8192, 1, 20)]
     res = fit(
         data,
-        config=ModelConfig(diffraction=False, apparatus=True),
+        config=ModelConfig(diffraction=False, apparatus=True, conductor_floor=True),
         material="auto",
         schedule=stages,
     )
     assert res.type_selection["chosen"] == material, res.type_selection
     assert res.material == material
+    assert "rho_d" not in res.type_selection["params"]["conductor"]  # compared without it
+    assert res.model_config.conductor_floor is (material == "conductor")
+    if material == "conductor":
+        assert all(e["start"].endswith("+ floor") for e in res.stages[-1]["starts"])
+        np.testing.assert_allclose(np.asarray(res.params.rho_d), rho, rtol=0.1)
+        assert res.std_errors["rho_d"] is not None
     assert [c.material for c in warmed] == [material]
     assert warmed[0] == res.model_config
     # The default metric is the blend of the scaled and the plain log residuals; the types are
@@ -611,27 +622,6 @@ def test_type_choice_on_synthetic_materials(material, monkeypatch):
     assert kept[other].material == other and kept[material].material == material
     assert res.type_selection["rms"][other] > res.type_selection["rms"][material]
     assert json.loads(json.dumps(res.type_selection))["params"] == res.type_selection["params"]
-
-
-def test_conductor_floor_added_after_the_type_choice():
-    """With ``conductor_floor`` and ``material="auto"``, the types are compared without the
-    floor, and the chosen conductor's last stage adds it: the measured floor is recovered
-    (the bare conductor leaves it out), and the record's configuration has it."""
-    from twoscale import ModelConfig, TwoScaleParams
-
-    rho = np.array([0.012, 0.008, 0.005])
-    true = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8, rho_d=rho)
-    cfg = ModelConfig(diffraction=False, apparatus=True, conductor_floor=True)
-    data = synthetic(true, cfg, noise=0.01, seed=6)
-    stages = [Stage(4096, 1, 40), Stage(8192, 1, 20)]
-    res = fit(data, config=cfg, material="auto", schedule=stages)
-    assert res.type_selection["chosen"] == "conductor", res.type_selection
-    assert res.model_config.conductor_floor and res.material == "conductor"
-    assert "rho_d" not in res.type_selection["params"]["conductor"]  # compared without it
-    last = res.stages[-1]["starts"]
-    assert all(e["start"].endswith("+ floor") for e in last)
-    np.testing.assert_allclose(np.asarray(res.params.rho_d), rho, rtol=0.1)
-    assert res.std_errors["rho_d"] is not None
 
 
 def test_no_progress_raises(ct_noisy, monkeypatch):
