@@ -70,7 +70,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import dataclasses
 import os
 import shutil
 import sys
@@ -431,12 +430,11 @@ def _run(args, log) -> int:
             apparatus_knee=args.apparatus_knee,
             diffuse_fresnel=args.diffuse_fresnel,
             shadowing=args.shadowing,
-            conductor_floor=args.conductor_floor,
+            # The example's truth is a bare conductor: no floor to find.
+            conductor_floor=args.conductor_floor and not args.example,
         )
     if args.example and args.material_type == "auto":
         material = "conductor"  # known for the example: keeps it fast
-    if args.example and not args.baseline:
-        config = dataclasses.replace(config, conductor_floor=False)  # the truth has no floor
     try:
         result = fit(
             data,

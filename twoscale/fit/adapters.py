@@ -165,7 +165,7 @@ class CookTorranceAdapter(AbstractAdapter):
         # GGX falls to 1/e of its peak at tan θ = α √(√e − 1) ≈ 0.80 α; Beckmann at tan θ = α.
         scale = 1.0 / math.sqrt(math.sqrt(math.e) - 1.0) if self.config.distribution == "ggx" else 1
         alpha0 = float(np.clip(stats.beta * scale, 2e-3, 1.0))
-        rho_d = np.clip(np.pi * stats.floor, 1e-3, 0.95)
+        rho_d = floor_albedo_start(stats)
         out = []
         for factor in (0.6, 1.0, 1.6):
             alpha = float(np.clip(alpha0 * factor, 2e-3, 1.5))
@@ -175,6 +175,12 @@ class CookTorranceAdapter(AbstractAdapter):
             m = START_M if self.config.fits_knee else None
             out.append((f"alpha={alpha:.3g}", CookTorranceParams(alpha, f0, rho_d, e, m)))
         return out
+
+
+def floor_albedo_start(stats: DataStats) -> np.ndarray:
+    """A Lambertian floor's start ``ρ_d = π ρ_floor`` per channel, from the data's floor level
+    (the baselines' body, a conductor's floor), kept inside ``[1e-3, 0.95]``."""
+    return np.clip(np.pi * np.asarray(stats.floor, np.float64), 1e-3, 0.95)
 
 
 def _epd_d0(beta: float, p: float) -> float:
@@ -323,7 +329,7 @@ class TwoScaleAdapter(AbstractAdapter):
                 k = np.minimum(conductor_k_for_f0(f0, 1.2), START_K_MAX)
                 params = TwoScaleParams.conductor(beta, p, eta, k, **extra)
                 if cfg.has_diffuse:
-                    params = params.replace(rho_d=np.clip(np.pi * stats.floor, 1e-3, 0.95))
+                    params = params.replace(rho_d=floor_albedo_start(stats))
             else:
                 f0_d = np.clip(f0, 0.02, 0.1)  # dielectric coats: F0 of a few %
                 eta = np.clip(dielectric_eta_for_f0(f0_d), 1.2, 2.2)

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from twoscale.fit import solver as _solver
-from twoscale.fit.adapters import adapter_for
+from twoscale.fit.adapters import adapter_for, floor_albedo_start
 from twoscale.fit.candidates import (
     NESTED_GRID,
     cross_seed,
@@ -338,7 +338,7 @@ def _floor_converter(floors: dict, prep: _Prepared, settings, say, warm):
         cfg = floors.get(g.adapter.config)
         if cfg is None:
             return kept
-        rho0 = np.clip(np.pi * np.asarray(prep.stats.floor, np.float64), 1e-3, 0.95)
+        rho0 = floor_albedo_start(prep.stats)
         problem = Problem(g.adapter, g.layout, settings.metric)
         starts = [(c.label, problem.params(c.y, g.frozen).replace(rho_d=rho0)) for c in kept]
         new_groups, new_cands = make_candidates([cfg], [starts], settings.fixed)
