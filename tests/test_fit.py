@@ -9,6 +9,7 @@ preview schedule (subsamples of 4 096 and 32 768 cells) to bound the CI cost; on
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -622,6 +623,44 @@ def test_type_choice_on_synthetic_materials(material, monkeypatch):
     assert kept[other].material == other and kept[material].material == material
     assert res.type_selection["rms"][other] > res.type_selection["rms"][material]
     assert json.loads(json.dumps(res.type_selection))["params"] == res.type_selection["params"]
+
+
+def test_few_starts_let_a_measured_body_decide_the_type(tmp_path):
+    """``starts="few"`` (``--preview``) with ``material="auto"``: a measured diffuse body carrying
+    at least ``BODY_SHARE`` of the light makes the plastic the type without fitting the conductor
+    (the body rule's choice, recorded as decided from the data); a bare metal's data decides
+    nothing, and the default starts still fit and compare both types."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit.material_type import BODY_SHARE, type_from_body
+    from twoscale.model import LUMINANCE
+
+    plastic = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (0.1, 0.3, 0.6), e=0.8)
+    metal = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+    cfg = ModelConfig(diffraction=False, apparatus=True)
+    data = synthetic(plastic, dataclasses.replace(cfg, material="plastic"), noise=0.01, seed=6)
+    bare = synthetic(metal, dataclasses.replace(cfg, material="conductor"), noise=0.01, seed=6)
+    stats = data_stats(np.asarray(data.values), np.asarray(data.valid))
+    decided = type_from_body(stats)
+    assert decided is not None and decided[0] == "plastic", decided
+    assert type_from_body(data_stats(np.asarray(bare.values), np.asarray(bare.valid))) is None
+    assert type_from_body(dataclasses.replace(stats, albedo=None)) is None
+    # Just below the share the body is not enough (the floor scaled to 0.99 of the threshold).
+    w = np.asarray(LUMINANCE)
+    share = np.pi * float(stats.floor @ w) / float(stats.albedo @ w)
+    assert share > BODY_SHARE
+    low = dataclasses.replace(stats, floor=stats.floor * (0.99 * BODY_SHARE / share))
+    assert type_from_body(low) is None
+
+    stages = [Stage(2048, 1, 20), Stage(4096, 1, 10)]
+    res = fit(data, config=cfg, material="auto", schedule=stages, starts="few")
+    ts = res.type_selection
+    assert ts["from_data"] and ts["chosen"] == "plastic" and ts["rms"] == {}, ts
+    assert res.material == "plastic"
+    starts = [e["start"] for st in res.stages for e in st["starts"]]
+    assert starts and not any(label.startswith("conductor") for label in starts), starts
+    assert "type plastic: the measured diffuse body carries" in res.summary()
+    back = load_result(res.save(tmp_path / "params.json"))
+    assert back.type_selection == json.loads(json.dumps(ts))
 
 
 def test_no_progress_raises(ct_noisy, monkeypatch):

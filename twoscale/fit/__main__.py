@@ -120,7 +120,8 @@ def _parser() -> argparse.ArgumentParser:
     sched.add_argument(
         "--preview",
         action="store_true",
-        help="faster: fewer starts (starts='few'), no last refinement",
+        help="faster: fewer starts (starts='few'), no last refinement; with --material auto a "
+        "diffuse body in the data makes the type plastic without fitting the conductor",
     )
     sched.add_argument(
         "--full", action="store_true", help="last refinement on every valid cell (slower)"

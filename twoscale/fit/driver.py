@@ -44,6 +44,7 @@ from twoscale.fit.material_type import (
     fresnel_choice_applies,
     resolve_configs,
     resolve_fresnel,
+    type_from_body,
 )
 from twoscale.fit.record import FitResult, package_versions
 from twoscale.fit.residuals import DEFAULT_METRIC, Problem, check_metric, residuals_per_cell
@@ -354,6 +355,22 @@ def _floor_converter(floors: dict, prep: _Prepared, settings, say, warm):
         return new_cands
 
     return convert
+
+
+def _preselect_type(configs: list, prep: _Prepared, settings, say):
+    """With ``starts="few"`` and several material types: the type the data's diffuse body
+    decides (:func:`~twoscale.fit.material_type.type_from_body`) is fitted alone. Returns
+    ``(configs, type selection record or None)``."""
+    materials = {getattr(c, "material", None) for c in configs}
+    if settings.starts != "few" or len(materials) < 2:
+        return configs, None
+    decided = type_from_body(prep.stats)
+    if decided is None or decided[0] not in materials:
+        return configs, None
+    winner, reason = decided
+    say(f"material: {winner} ({reason})")
+    kept = [c for c in configs if c.material == winner]
+    return kept, {"rms": {}, "chosen": winner, "reason": reason, "stage": 0, "from_data": True}
 
 
 def _few_data_starts(start_list):
@@ -668,7 +685,11 @@ def fit(
             special case from p = 1 only, the full model from the nested start and one strong
             diffraction lobe as narrow as the special case's highlight, and with
             ``fresnel="auto"`` the full model with the Fresnel form its special case chose
-            only; the CLI's ``--preview``) or a list of
+            only; with ``material="auto"`` a measured diffuse body carrying at least
+            :data:`~twoscale.fit.material_type.BODY_SHARE` of the light makes the plastic the
+            type before any fit, the conductor not fitted,
+            :func:`~twoscale.fit.material_type.type_from_body`; the CLI's ``--preview``) or a
+            list of
             parameter objects (needs a single material type).
         schedule: ``"default"``, ``"preview"`` (no last refinement), ``"full"`` (the last
             refinement on every fitted cell) or a list of :class:`Stage`.
@@ -743,6 +764,7 @@ def fit(
         f"{prep.n_fit} cells fitted of {len(prep.selection.valid)} valid; metric "
         f"{settings.metric}; {len(settings.stages)} stages"
     )
+    configs, preselection = _preselect_type(configs, prep, settings, say)
     # Phase 2: the candidates. Each configuration's solve is compiled in the background ahead
     # of its first use (solver.Warmup).
     warm = _solver.Warmup(prep.buffer, settings.solver_settings)
@@ -760,5 +782,5 @@ def fit(
         if mat in fresnel_choice:
             entry.update(fresnel_choice[mat])
     # Phase 5: the record.
-    selections = (type_selection, fresnel_selection)
+    selections = (type_selection or preselection, fresnel_selection)
     return _record(data, prep, groups, cands, stage_log, selections, settings, t0, say)

@@ -317,6 +317,30 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     return winner, f"RMS within {TYPE_TIE_RTOL:.0%}; lower RMS"
 
 
+def type_from_body(stats) -> tuple[str, str] | None:
+    """The material type the data's diffuse body decides without fitting the other type, or
+    ``None``: ``("plastic", reason)`` when the measured body (albedo ``π ρ_floor``, luminance)
+    carries at least :data:`BODY_SHARE` of the light the material reflects (``stats``: a
+    :class:`~twoscale.fit.starts.DataStats` with its albedo).
+
+    :func:`choose_type`'s body rule gives such a material to the plastic unless the plastic fit
+    fails to make the body while the conductor's lobes make it; ``starts="few"``
+    (``--preview``) takes that for granted and fits the plastic alone. On the 60 stand-ins the
+    default fits chose the plastic for all 48 with such a body (``campaigns/RESULTS.md``)."""
+    if stats.albedo is None:
+        return None
+    w = np.asarray(LUMINANCE)
+    albedo = float(np.asarray(stats.albedo) @ w)
+    body = math.pi * float(np.asarray(stats.floor) @ w)
+    if not (albedo > 0.0 and body >= BODY_SHARE * albedo):
+        return None
+    return "plastic", (
+        f"the measured diffuse body carries {body / albedo:.0%} of the light (albedo π ρ = "
+        f"{body:.3g}; at least {BODY_SHARE:.0%}): the body rule's type, the conductor not "
+        "fitted (starts='few')"
+    )
+
+
 def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model

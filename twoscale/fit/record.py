@@ -113,7 +113,8 @@ class FitResult:
         type_selection: how the material type was chosen (``material="auto"``): each type's RMS
             (``"rms"``) and best parameters on that stage (``"params"``, ``to_dict()`` form: the
             type not chosen can be read back with ``TwoScaleParams.from_dict``), the winner and
-            why.
+            why; with ``"from_data": True`` (``starts="few"``) the data's diffuse body decided it
+            and the other type was not fitted (``"rms"`` empty, ``"stage"`` 0).
         fresnel_selection: how a dielectric coat's Fresnel form was chosen (``fresnel="auto"``):
             the diffraction-off fits' RMS with the exact and with Schlick's form, the winner and
             why (None when not chosen).
@@ -261,7 +262,9 @@ class FitResult:
             f"{self.steps} steps, {self.wall_time:.1f} s",
         ]
         ts = self.type_selection
-        if ts and len(ts.get("rms", {})) > 1:
+        if ts and ts.get("from_data"):
+            lines.append(f"type {ts['chosen']}: {ts['reason']}")
+        elif ts and len(ts.get("rms", {})) > 1:
             others = ", ".join(f"{m} {r:.4g}" for m, r in ts["rms"].items() if m != ts["chosen"])
             kept = " (its parameters: type_selection in params.json)" if "params" in ts else ""
             lines.append(
