@@ -380,36 +380,29 @@ def fit_material(
 
 def _fit_with_cli(path, records, name: str, row: Row, settings: dict, log):
     """Run ``python -m twoscale.fit`` on ``path`` (see :func:`fit_material`); returns the result."""
-    import os
-    import subprocess
+    import shutil
     import tempfile
 
-    from twoscale.fit import load_result
+    from campaigns.cli import run_cli
 
     keep = records is not None
     out_parent = Path(records) / name if keep else Path(tempfile.mkdtemp(prefix="twoscale-cli-"))
-    out = out_parent / "cli"
-    args = [sys.executable, "-m", "twoscale.fit", str(path), "--out", str(out), "--quiet"]
-    args += ["--metric", settings["metric"]]
+    extra = ["--metric", settings["metric"]]
     if settings["schedule"] == "preview":
-        args.append("--preview")
+        extra.append("--preview")
     if not settings["apparatus"]:
-        args.append("--no-apparatus")
+        extra.append("--no-apparatus")
     if settings["max_theta"] is not None:
-        args += ["--max-theta", str(settings["max_theta"])]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    proc = subprocess.run(args, capture_output=True, text=True, env=env)
-    row.cli_exit = proc.returncode
-    for line in proc.stderr.splitlines():
+        extra += ["--max-theta", str(settings["max_theta"])]
+    run = run_cli(path, out_parent / "cli", extra)
+    row.cli_exit = run.returncode
+    for line in run.stderr.splitlines():
         log(f"    cli: {line}")
-    if proc.returncode != 0:
-        raise RuntimeError(f"the CLI exited {proc.returncode}: {proc.stderr.strip()[-300:]}")
-    res = load_result(out / "params.json")
+    if run.returncode != 0:
+        raise RuntimeError(f"the CLI exited {run.returncode}: {run.stderr.strip()[-300:]}")
     if not keep:
-        import shutil
-
         shutil.rmtree(out_parent, ignore_errors=True)
-    return res
+    return run.result
 
 
 # --------------------------------------------------------------------------------------------

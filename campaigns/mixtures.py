@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from campaigns import nbrdf
+from campaigns.cli import run_cli
 
 #: The mixing weight of the first material is drawn uniformly in this range.
 WEIGHT_RANGE = (0.3, 0.7)
@@ -96,16 +96,10 @@ class Outcome:
 
 def _run_cli(path: Path, out: Path, extra: list[str]):
     """``(exit code, wall time, FitResult or None)`` of one CLI run writing into ``out``."""
-    from twoscale.fit import load_result
-
-    args = [sys.executable, "-m", "twoscale.fit", str(path), "--out", str(out), "--quiet", *extra]
-    t = time.perf_counter()
-    proc = subprocess.run(args, capture_output=True, text=True)
-    wall = time.perf_counter() - t
-    if proc.returncode != 0:
-        print(f"  exit {proc.returncode}: {proc.stderr.strip()[-300:]}", file=sys.stderr)
-        return proc.returncode, wall, None
-    return proc.returncode, wall, load_result(out / "params.json")
+    run = run_cli(path, out, extra)
+    if run.returncode != 0:
+        print(f"  exit {run.returncode}: {run.stderr.strip()[-300:]}", file=sys.stderr)
+    return run.returncode, run.wall, run.result
 
 
 def fit_pair(path: Path, work: Path) -> Outcome:

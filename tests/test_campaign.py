@@ -463,3 +463,16 @@ def test_mixture_pairs_and_mixing():
     assert "below GGX + Lambert's on 1 of 2 (not on: y)" in text
     assert "Linear RMSE above 2× GGX + Lambert's on 1: y." in text
     assert "median 0.0 %" in text  # improvements 50 % and −50 %
+
+
+def test_run_cli_reports_a_refused_file(tmp_path):
+    """``campaigns.cli.run_cli`` (both campaigns' CLI runs): a file the CLI refuses comes back
+    with its exit status, its message and no result."""
+    from campaigns.cli import run_cli
+
+    bad = tmp_path / "short.binary"
+    bad.write_bytes(b"\x00" * 12)
+    run = run_cli(bad, tmp_path / "out", ["--no-plots"])
+    assert run.returncode == 2, run.stderr
+    assert run.result is None and run.wall > 0
+    assert "not a valid MERL .binary file" in run.stderr, run.stderr
