@@ -226,6 +226,16 @@ def dielectric_albedo_bound(fall_off=None, eta: float = ETA_COAT_MAX, n: int = 2
     return float(np.sum(2.0 * f * cos * np.sin(theta)) * (0.5 * math.pi / n))
 
 
+def body_share(floor, albedo) -> tuple[float, float, float]:
+    """``(body albedo π ρ_floor, measured albedo, body's share of it)`` in luminance, from the
+    data's floor level and bihemispherical albedo per channel: what the body rules of
+    :func:`choose_type` and :func:`type_from_body` weigh against :data:`BODY_SHARE`."""
+    w = np.asarray(LUMINANCE)
+    body = math.pi * float(np.asarray(floor) @ w)
+    total = float(np.asarray(albedo) @ w)
+    return body, total, body / max(total, 1e-300)
+
+
 def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
     """Pick a material type from ``{type: (rms, params)}``; returns ``(type, reason)``.
 
@@ -263,8 +273,7 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
         measured = float(np.asarray(body["measured"]) @ w)
         frac_c = float(np.asarray(body["conductor"]) @ w) / max(measured, 1e-300)
         frac_p = float(np.asarray(body["plastic"]) @ w) / max(measured, 1e-300)
-        body_albedo = math.pi * measured
-        share = body_albedo / max(float(np.asarray(body["albedo"]) @ w), 1e-300)
+        body_albedo, albedo, share = body_share(body["measured"], body["albedo"])
         if share >= BODY_SHARE:
             if frac_c < MISSING_BODY and abs(math.log(max(frac_p, 1e-300))) < abs(
                 math.log(max(frac_c, 1e-300))
@@ -284,7 +293,7 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
         else:
             # No body: the highlight carries (nearly) all the light. Brighter than any dielectric
             # interface reflects through the same fall-off, it is a metal's; else a dielectric's.
-            highlight = float(np.asarray(body["albedo"]) @ w) - body_albedo
+            highlight = albedo - body_albedo
             bound = dielectric_albedo_bound(body.get("fall_off"))
             kind = "conductor" if highlight > bound else "plastic"
             other = "plastic" if kind == "conductor" else "conductor"
@@ -329,13 +338,11 @@ def type_from_body(stats) -> tuple[str, str] | None:
     default fits chose the plastic for all 48 with such a body (``campaigns/RESULTS.md``)."""
     if stats.albedo is None:
         return None
-    w = np.asarray(LUMINANCE)
-    albedo = float(np.asarray(stats.albedo) @ w)
-    body = math.pi * float(np.asarray(stats.floor) @ w)
-    if not (albedo > 0.0 and body >= BODY_SHARE * albedo):
+    body, albedo, share = body_share(stats.floor, stats.albedo)
+    if not (albedo > 0.0 and share >= BODY_SHARE):
         return None
     return "plastic", (
-        f"the measured diffuse body carries {body / albedo:.0%} of the light (albedo π ρ = "
+        f"the measured diffuse body carries {share:.0%} of the light (albedo π ρ = "
         f"{body:.3g}; at least {BODY_SHARE:.0%}): the body rule's type, the conductor not "
         "fitted (starts='few')"
     )
