@@ -4,6 +4,7 @@ docs/model.md §3.1) and the fit's choice between it and the exact equations (§
 import dataclasses
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -84,6 +85,63 @@ def test_schlick_replaces_the_coat_reflectance_only(diffuse_fresnel):
         np.testing.assert_allclose(b["diffuse"], a["diffuse"] * r, rtol=1e-10)
     else:  # the Lambertian body has no coat
         np.testing.assert_array_equal(b["diffuse"], a["diffuse"])
+
+
+def test_fresnel_twins_share_one_compiled_function():
+    """A run-time selector (``schlick=``) gives each static form's values and gradients, on the
+    per-pair and the fit's per-bin paths (diffuse layer through the varnish included); the fit's
+    adapters carry the form as an array, so the exact and Schlick twins' problems are traced
+    once, and each reports its own form."""
+    from twoscale.fit.adapters import adapter_for, compile_key
+    from twoscale.fit.residuals import Problem
+    from twoscale.model import brdf_from_factors, half_diff_factors, merl_grid
+
+    ex = dataclasses.replace(EXACT, diffuse_fresnel=True)
+    grid = merl_grid("lower")
+    ih, jd = jnp.array([0, 3, 40]), jnp.array([5, 60, 85])
+    cos_i, cos_o, phi = jnp.array([0.9, 0.5, 0.2]), jnp.array([0.8, 0.6, 0.1]), jnp.zeros(3)
+
+    def cells(cfg, s):
+        f = half_diff_factors(PARAMS, grid, cfg, schlick=s)
+        return brdf_from_factors(PARAMS, f, ih, jd, cos_i, cos_o, phi, cfg, schlick=s)
+
+    for static, flag in ((ex, False), (dataclasses.replace(ex, fresnel="schlick"), True)):
+        sel = np.asarray(flag)
+        np.testing.assert_array_equal(
+            twoscale.brdf(PARAMS, WI, WO, ex, schlick=sel), twoscale.brdf(PARAMS, WI, WO, static)
+        )
+        g_sel = jax.grad(lambda p, s=sel: twoscale.brdf(p, WI, WO, ex, schlick=s).sum())(PARAMS)
+        g_static = jax.grad(lambda p, c=static: twoscale.brdf(p, WI, WO, c).sum())(PARAMS)
+        leaves = zip(*map(jax.tree_util.tree_leaves, (g_sel, g_static)), strict=True)
+        for a, b in leaves:
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
+        np.testing.assert_array_equal(cells(ex, sel), cells(static, None))
+    with pytest.raises(ValueError, match="dielectric coat"):
+        twoscale.brdf(PARAMS, WI, WO, dataclasses.replace(ex, fresnel="schlick"), schlick=True)
+    with pytest.raises(ValueError, match="dielectric coat"):
+        twoscale.brdf(
+            TwoScaleParams.conductor(0.1, 1.0, 1.5, 2.0),
+            WI,
+            WO,
+            ModelConfig(diffraction=False),
+            schlick=True,
+        )
+
+    a_ex, a_sc = adapter_for(EXACT), adapter_for(SCHLICK)
+    assert a_ex.config == EXACT and a_sc.config == SCHLICK
+    assert compile_key(a_ex) == compile_key(a_sc) == EXACT
+    assert adapter_for(ModelConfig()).config == ModelConfig()
+    traces = []
+
+    @eqx.filter_jit
+    def value(problem, params):
+        traces.append(problem.adapter.schlick)
+        return problem.adapter.evaluate(params, WI, WO)
+
+    out = [value(Problem(a, None, "blend"), PARAMS) for a in (a_ex, a_sc)]
+    assert len(traces) == 1
+    np.testing.assert_array_equal(out[0], twoscale.brdf(PARAMS, WI, WO, EXACT))
+    np.testing.assert_array_equal(out[1], twoscale.brdf(PARAMS, WI, WO, SCHLICK))
 
 
 @pytest.mark.slow
@@ -169,13 +227,10 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner, starts):
     configs, groups, cands, selection = driver._make_starts(
         prep, resolve_configs(None, "plastic"), settings, lambda msg: None, Warm()
     )
-    # Only what is fitted is compiled: with starts="few" the special case's form alone (queued
-    # once it is known), else the exact form at once and Schlick's twin as soon as the special
-    # case says it goes on (before the grid evaluations, which the type choice needs last).
-    if winner == "exact":
-        assert warmed == ["exact"]
-    else:
-        assert warmed == (["schlick"] if starts == "few" else ["exact", "schlick"])
+    # The full model's solve is queued once, at once, before the special cases say which form
+    # goes on: the compiled solve of a dielectric coat serves both forms (the form is an array
+    # of the adapter, see test_fresnel_twins_share_one_compiled_function).
+    assert warmed == ["exact"]
     assert len(screened) == 1 and set(screened[0]) == {"exact", "schlick"}
     assert cands and all(groups[c.group].adapter.config.diffraction for c in cands)
     special = selection["plastic"]["special_case"]

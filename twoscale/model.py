@@ -125,14 +125,20 @@ def apparatus_factor(cos_theta, e, m=PAPER_KNEE):
     return jnp.where(base > 0.0, jnp.exp(e * safe_log(base)), 0.0)
 
 
-def _coat_fresnel(cfg: ModelConfig, cos_theta, eta):
-    """A dielectric coat's reflectance in the form ``cfg.fresnel`` names [docs/model.md §3.1]."""
+def _coat_fresnel(cfg: ModelConfig, cos_theta, eta, schlick=None):
+    """A dielectric coat's reflectance in the form ``cfg.fresnel`` names [docs/model.md §3.1],
+    or, with a ``schlick`` selector (a boolean array, see :func:`brdf`), the form it picks at
+    run time: both are computed and one is taken as it is (the same values as the static form)."""
+    if schlick is not None:
+        return jnp.where(
+            schlick, fresnel.schlick(cos_theta, eta), fresnel.dielectric(cos_theta, eta)
+        )
     if cfg.fresnel == "schlick":
         return fresnel.schlick(cos_theta, eta)
     return fresnel.dielectric(cos_theta, eta)
 
 
-def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
+def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar, schlick=None):
     """Diffuse layer of a dielectric, or a conductor's floor [docs/model.md §3.9]; per channel,
     shape ``(..., N)``.
 
@@ -146,8 +152,8 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar):
     lambertian = cfg.material == "plastic" and not cfg.diffuse_fresnel
     if cfg.is_conductor or lambertian:  # a Lambertian body (or floor)
         return jnp.broadcast_to(rho_d / math.pi, jnp.broadcast_shapes(cos_i.shape, rho_d.shape))
-    t_i = 1.0 - _coat_fresnel(cfg, cos_i, eta)
-    t_o = 1.0 - _coat_fresnel(cfg, cos_o, eta)
+    t_i = 1.0 - _coat_fresnel(cfg, cos_i, eta, schlick)
+    t_o = 1.0 - _coat_fresnel(cfg, cos_o, eta, schlick)
     if cfg.material == "plastic":
         f_dr = fresnel.diffuse_fresnel(1.0 / eta_bar)
         # Optional radiance compression 1/η̄²: with it 1 − F_dr(1/η̄) ≈ (1 − F_dr(η̄))/η̄², so a
@@ -302,6 +308,7 @@ class _Channels(NamedTuple):
     rho_d: jax.Array | None  # (N,), dielectrics only
     dtype: object
     eta_bar: jax.Array | None = None  # η̄ of the diffuse layer, when given (one channel at a time)
+    schlick: jax.Array | None = None  # the coat's Fresnel form chosen at run time (see brdf)
 
 
 def _chan(ch: _Channels, x):
@@ -311,8 +318,11 @@ def _chan(ch: _Channels, x):
     return x if jnp.ndim(ch.eta) == 0 else x[..., None]
 
 
-def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays) -> _Channels:
+def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays, schlick=None) -> _Channels:
     _check_structure(params, cfg)
+    if schlick is not None:
+        _check_selector(cfg)
+        schlick = jnp.asarray(schlick, bool)
     used = cfg.param_names
     dtype = float_dtype(*arrays, *(getattr(params, n) for n in used))
     par = {
@@ -321,14 +331,26 @@ def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays) -> _Channels:
     eta = params.channels("eta", cfg).astype(dtype)
     k = params.channels("k", cfg).astype(dtype) if cfg.is_conductor else None
     rho_d = params.channels("rho_d", cfg).astype(dtype) if cfg.has_diffuse else None
-    return _Channels(par, eta, k, jnp.asarray(cfg.wavelengths, dtype), rho_d, dtype)
+    return _Channels(
+        par, eta, k, jnp.asarray(cfg.wavelengths, dtype), rho_d, dtype, schlick=schlick
+    )
+
+
+def _check_selector(cfg: ModelConfig) -> None:
+    """A run-time Fresnel selector takes the place of ``fresnel="exact"`` of a dielectric coat."""
+    if cfg.is_conductor or cfg.fresnel != "exact" or cfg.q_mode == "full":
+        raise ValueError(
+            "schlick= selects a dielectric coat's Fresnel form at run time: it needs a plastic or "
+            "subsurface ModelConfig with fresnel='exact' and q_mode other than 'full', got "
+            f"{cfg}"
+        )
 
 
 def _fresnel(ch: _Channels, cfg: ModelConfig, cos_d):
     """The specular reflectance ``F(θ_d)`` per channel (conductor, or the coat's form)."""
     if cfg.is_conductor:
         return fresnel.conductor(cos_d, ch.eta, ch.k)
-    return _coat_fresnel(cfg, cos_d, ch.eta)
+    return _coat_fresnel(cfg, cos_d, ch.eta, ch.schlick)
 
 
 def _half_diff_terms(
@@ -407,7 +429,7 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig) ->
     if cfg.has_diffuse:
         eta_bar = _eta_bar(ch, cfg) if ch.eta_bar is None else ch.eta_bar
         out["diffuse"] = _diffuse(
-            cfg, _chan(ch, cos_i), _chan(ch, cos_o), ch.eta, ch.rho_d, eta_bar
+            cfg, _chan(ch, cos_i), _chan(ch, cos_o), ch.eta, ch.rho_d, eta_bar, ch.schlick
         )
     return out
 
@@ -452,7 +474,9 @@ def _pair_lobes(ch: _Channels, wi, wo, cfg: ModelConfig, lobe_slice, total: bool
     return jax.vmap(one)(ch.eta, ch.k, ch.wl, ch.rho_d, fres)
 
 
-def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig, total: bool = False) -> dict:
+def _channel_lobes(
+    params: TwoScaleParams, wi, wo, cfg: ModelConfig, total: bool = False, schlick=None
+) -> dict:
     """Every switched-on lobe per wavelength, each ``(..., N)`` (N = len(cfg.wavelengths)), or
     with ``total`` their sum (``{"total": ...}``).
 
@@ -460,7 +484,7 @@ def _channel_lobes(params: TwoScaleParams, wi, wo, cfg: ModelConfig, total: bool
     :func:`_pair_lobes`, channel first, moved to the channel-last output by
     :func:`_channels_last`.
     """
-    ch = _channels(params, cfg, wi, wo)
+    ch = _channels(params, cfg, wi, wo, schlick=schlick)
     wi, wo = jnp.broadcast_arrays(jnp.asarray(wi, ch.dtype), jnp.asarray(wo, ch.dtype))
     out = _pair_lobes(ch, wi, wo, cfg, _lobe_slice(ch, cfg), total)
     return {k: _channels_last(v) for k, v in out.items()}
@@ -509,16 +533,20 @@ def _to_output(values, cfg: ModelConfig):
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def lobes(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig()) -> dict:
+def lobes(
+    params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig(), *, schlick=None
+) -> dict:
     """The switched-on lobes separately: ``{"specular", "diffraction", "diffuse"}`` ⊆ keys.
 
-    Each value has shape ``(..., config.n_channels)``; their sum is :func:`brdf`.
+    Each value has shape ``(..., config.n_channels)``; their sum is :func:`brdf` (``schlick``:
+    as there).
     """
-    return {n: _to_output(v, config) for n, v in _channel_lobes(params, wi, wo, config).items()}
+    out = _channel_lobes(params, wi, wo, config, schlick=schlick)
+    return {n: _to_output(v, config) for n, v in out.items()}
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig()):
+def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig(), *, schlick=None):
     """Evaluate the two-scale BRDF ``ρ(i, o)`` (1/sr, without the cos θ_o factor) [HP17; §2].
 
     Args:
@@ -527,12 +555,18 @@ def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig()):
         wi, wo: unit directions ``(..., 3)`` pointing away from the surface (normal = z);
             broadcast together. Directions at or below the horizon give 0.
         config: static :class:`~twoscale.config.ModelConfig`.
+        schlick: optional boolean array that chooses a dielectric coat's Fresnel form at run
+            time instead of ``config.fresnel`` (True: Schlick's form, False: the exact
+            equations), for a plastic or subsurface ``config`` with ``fresnel="exact"``: one
+            compiled function then serves both forms, with the values of each (the fit compares
+            the two forms this way, docs/model.md §8). None (default): ``config.fresnel``.
     Returns:
         ``(..., config.n_channels)``, dtype of the inputs (float32 in → float32 out). Jitted
         (``config`` static; nested in an outer ``jit``/``vmap``/``grad`` it is inlined),
         differentiable in every parameter, finite values and gradients over the valid domain.
     """
-    return _to_output(_channel_lobes(params, wi, wo, config, total=True)["total"], config)
+    total = _channel_lobes(params, wi, wo, config, total=True, schlick=schlick)["total"]
+    return _to_output(total, config)
 
 
 def _cells_total(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig):
@@ -593,7 +627,9 @@ def merl_grid(convention: str = "lower", dtype=None) -> HalfDiffGrid:
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def brdf_grid(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig = ModelConfig()):
+def brdf_grid(
+    params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig = ModelConfig(), *, schlick=None
+):
     """:func:`brdf` on a :class:`HalfDiffGrid`, ``(H, D, P, C)``: the fast path for MERL tables.
 
     The same model and values as :func:`brdf` at the grid's directions (equal to rounding), but
@@ -601,24 +637,26 @@ def brdf_grid(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig = 
     bin, ``D`` per ``θ_h`` bin, the convolved lobe per ``(θ_h, θ_d)`` bin (8 100 lookups instead
     of 1.458 M for MERL), and only ``G``, ``1/(4 cos θ_i cos θ_o)``, the apparatus factor, the
     full ``Q`` and the diffuse layer per cell. Cells at or below the horizon give 0.
+    ``schlick``: as in :func:`brdf`.
     """
-    ch = _channels(params, config, grid.cos_h)
-    hd = {k: v[:, :, None, :] for k, v in half_diff_terms(params, grid, config).items()}
+    ch = _channels(params, config, grid.cos_h, schlick=schlick)
+    terms = half_diff_terms(params, grid, config, schlick=schlick)
+    hd = {k: v[:, :, None, :] for k, v in terms.items()}
     out = _cells_total(ch, hd, grid.cos_i, grid.cos_o, grid.phi, config)
     return jnp.take(out, grid.unfold, axis=2)
 
 
 def half_diff_terms(
-    params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig, bins=None
+    params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig, bins=None, *, schlick=None
 ) -> dict:
     """The ``(θ_h, θ_d)`` factors of the lobes on a grid's bins.
 
     Each ``(H, D, N)`` (every bin), or ``(K, N)`` at the bins ``bins = (ih, jd)`` (two ``(K,)``
     integer arrays) when only those are needed. With :func:`brdf_from_terms` this splits
     :func:`brdf` on grid cells into a per-bin part (computed once per parameter set) and a
-    per-cell part; the fit uses it for MERL cells.
+    per-cell part; the fit uses it for MERL cells. ``schlick``: as in :func:`brdf`.
     """
-    ch = _channels(params, config, grid.cos_h)
+    ch = _channels(params, config, grid.cos_h, schlick=schlick)
     cos_h, cos_d, sin_d = (jnp.asarray(a, ch.dtype) for a in (grid.cos_h, grid.cos_d, grid.sin_d))
     if bins is not None:
         ih, jd = bins
@@ -673,16 +711,18 @@ def _grid_lobe_jvp(static, primals, tangents):
 _grid_lobe.defjvp(_grid_lobe_jvp, symbolic_zeros=True)
 
 
-def half_diff_factors(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig) -> dict:
+def half_diff_factors(
+    params: TwoScaleParams, grid: HalfDiffGrid, config: ModelConfig, *, schlick=None
+) -> dict:
     """The factors of :func:`half_diff_terms` on every bin, channel first, before their products.
 
     ``{"specular": (A_s F (N, D), D (N, H)), "diffraction": (its θ_d factor (N, D), the
     convolved lobe (N, H·D))}`` for the lobes switched on; bin ``90 ih + jd`` of the lobe at
     that position. A ``vmap`` of one channel's factors, as :func:`_pair_lobes`: XLA's loops run
     along the bins, not over a minor axis of N = 3. :func:`brdf_from_factors` evaluates cells
-    from them.
+    from them. ``schlick``: as in :func:`brdf`.
     """
-    ch = _channels(params, config, grid.cos_h)
+    ch = _channels(params, config, grid.cos_h, schlick=schlick)
     cos_h, cos_d, sin_d = (jnp.asarray(a, ch.dtype) for a in (grid.cos_h, grid.cos_d, grid.sin_d))
     n_d = cos_d.shape[0]
     lobe_slice, lobes = None, None
@@ -714,16 +754,26 @@ def half_diff_factors(params: TwoScaleParams, grid: HalfDiffGrid, config: ModelC
 
 
 def brdf_from_factors(
-    params: TwoScaleParams, factors: dict, ih, jd, cos_i, cos_o, phi, config: ModelConfig
+    params: TwoScaleParams,
+    factors: dict,
+    ih,
+    jd,
+    cos_i,
+    cos_o,
+    phi,
+    config: ModelConfig,
+    *,
+    schlick=None,
 ):
     """:func:`brdf` at cells of a grid from :func:`half_diff_factors`, ``(..., C)``: ``ih``,
-    ``jd`` the cells' ``θ_h`` and ``θ_d`` bins (the same values as :func:`brdf_from_terms`).
+    ``jd`` the cells' ``θ_h`` and ``θ_d`` bins (the same values as :func:`brdf_from_terms`;
+    ``schlick``: as in :func:`brdf`, and as for the factors).
 
     Channel first, as :func:`_pair_lobes`: each cell's factors are gathered into ``(N, ...)``
     rows and the per-cell lobes are a ``vmap`` of one channel's, so XLA's loops run along the
     cells; the total is moved to the channel-last output once.
     """
-    ch = _channels(params, config, cos_i)
+    ch = _channels(params, config, cos_i, schlick=schlick)
     cos_i, cos_o, phi = (jnp.asarray(a, ch.dtype) for a in (cos_i, cos_o, phi))
     hd = {}
     for key, (per_d, other) in factors.items():
@@ -741,27 +791,39 @@ def brdf_from_factors(
 
 
 def brdf_from_terms(
-    params: TwoScaleParams, terms: dict, index, cos_i, cos_o, phi, config: ModelConfig
+    params: TwoScaleParams,
+    terms: dict,
+    index,
+    cos_i,
+    cos_o,
+    phi,
+    config: ModelConfig,
+    *,
+    schlick=None,
 ):
     """:func:`brdf` at cells of a grid, from the bins' :func:`half_diff_terms`, ``(..., C)``.
 
     ``index``: the cells' positions in ``terms`` (``(ih, jd)`` bin indices for the terms of
     every bin, or one index array into ``(K, N)`` terms); ``cos_i``, ``cos_o``, ``phi``: their
-    direction cosines and azimuth difference (cells at or below the horizon give 0).
+    direction cosines and azimuth difference (cells at or below the horizon give 0);
+    ``schlick``: as in :func:`brdf` (and as for the terms).
     """
-    ch = _channels(params, config, cos_i)
+    ch = _channels(params, config, cos_i, schlick=schlick)
     index = index if isinstance(index, tuple) else (index,)
     hd = {k: v[index] for k, v in terms.items()}
     return _cells_total(ch, hd, cos_i, cos_o, phi, config)
 
 
-def brdf_merl(params: TwoScaleParams, config: ModelConfig = ModelConfig(), convention="lower"):
+def brdf_merl(
+    params: TwoScaleParams, config: ModelConfig = ModelConfig(), convention="lower", *, schlick=None
+):
     """The BRDF on the whole MERL grid, ``(90, 90, 180, C)`` (:func:`brdf_grid` on :func:`merl_grid`).
 
-    dtype: that of the parameters (float64 needs ``jax_enable_x64``).
+    dtype: that of the parameters (float64 needs ``jax_enable_x64``); ``schlick``: as in
+    :func:`brdf`.
     """
     dtype = float_dtype(*(x for x in jax.tree_util.tree_leaves(params)))
-    return brdf_grid(params, merl_grid(convention, dtype), config)
+    return brdf_grid(params, merl_grid(convention, dtype), config, schlick=schlick)
 
 
 # ------------------------------------------------------------------------------------ albedo

@@ -26,6 +26,7 @@ import math
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import numpy as np
 
 from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
@@ -57,7 +58,9 @@ LOBES = ("specular", "diffraction", "diffuse")
 class AbstractAdapter(eqx.Module):
     """What the driver needs of a model under a fixed (static, hashable) configuration."""
 
-    config: eqx.AbstractVar[object]
+    # Every adapter has ``config``, its configuration (a field, or a property of the fields):
+    # not declared here, where an abstract attribute would become a dataclass field of every
+    # subclass, property or not.
     #: The model splits into per-(θ_h, θ_d)-bin terms and a per-cell part (``bin_terms``,
     #: ``evaluate_cells``), which the fit's passes use.
     factorised: ClassVar[bool] = False
@@ -203,10 +206,29 @@ def sigma_s_for_a_spec(a_spec: float, b: float, c: float, wavelength: float) -> 
 
 
 class TwoScaleAdapter(AbstractAdapter):
-    """The two-scale model :func:`twoscale.brdf` under a fixed :class:`twoscale.ModelConfig`."""
+    """The two-scale model :func:`twoscale.brdf` under a fixed :class:`twoscale.ModelConfig`.
 
-    config: object  # twoscale.ModelConfig (hashable)
+    ``model_config`` is static (part of every compiled function's identity). A dielectric coat's
+    Fresnel form is not: :func:`adapter_for` gives such a configuration ``fresnel="exact"``
+    there and the form as the array ``schlick`` (a leaf, passed to the model as its ``schlick``
+    selector), so that a fit's exact and Schlick twins share one compiled solve, one grid
+    evaluation and one persistent-cache entry instead of compiling each form (``--preview`` of
+    pvc with an empty cache 18.0 → 15.4 s, see docs/model.md §8). :attr:`config` is the
+    configuration with its form, as the fit reports and records it.
+    """
+
+    model_config: object  # twoscale.ModelConfig (hashable; static)
+    schlick: np.ndarray | None = None  # dielectric coats: the Fresnel form (True: Schlick's)
     factorised: ClassVar[bool] = True
+
+    @property
+    def config(self):
+        """The configuration this adapter fits, its ``fresnel`` the selected form. (Inside a
+        traced function, where the form is not known, ``model_config``: the same but for it.)"""
+        s = self.schlick
+        if s is None or isinstance(s, jax.core.Tracer) or not bool(s):
+            return self.model_config
+        return dataclasses.replace(self.model_config, fresnel="schlick")
 
     @property
     def diffraction(self) -> bool:
@@ -241,7 +263,7 @@ class TwoScaleAdapter(AbstractAdapter):
     def evaluate(self, params, wi, wo):
         from twoscale.model import brdf
 
-        return brdf(params, wi, wo, self.config)
+        return brdf(params, wi, wo, self.model_config, schlick=self.schlick)
 
     def bin_terms(self, params):
         """Per-bin factors of the model on the MERL grid (lower bin edges, as the fit's cells):
@@ -250,7 +272,9 @@ class TwoScaleAdapter(AbstractAdapter):
         its own: cheaper than differentiating their products on all 8 100 bins)."""
         from twoscale.model import half_diff_factors, merl_grid
 
-        return half_diff_factors(params, merl_grid("lower"), self.config)
+        return half_diff_factors(
+            params, merl_grid("lower"), self.model_config, schlick=self.schlick
+        )
 
     def evaluate_cells(self, params, terms, cells):
         """The model at MERL cells (``cells``: ``hd`` = 90 ih + jd, ``cos`` = (cos θ_i, cos θ_o),
@@ -260,14 +284,22 @@ class TwoScaleAdapter(AbstractAdapter):
         cos = cells["cos"]
         ih, jd = cells["hd"] // 90, cells["hd"] % 90
         return brdf_from_factors(
-            params, terms, ih, jd, cos[..., 0], cos[..., 1], cells["phi"], self.config
+            params,
+            terms,
+            ih,
+            jd,
+            cos[..., 0],
+            cos[..., 1],
+            cells["phi"],
+            self.model_config,
+            schlick=self.schlick,
         )
 
     def evaluate_grid(self, params, convention: str = "lower"):
         """The model on the whole MERL grid, ``(90, 90, 180, C)`` (:func:`twoscale.model.brdf_merl`)."""
         from twoscale.model import brdf_merl
 
-        return brdf_merl(params, self.config, convention)
+        return brdf_merl(params, self.model_config, convention, schlick=self.schlick)
 
     def evaluate_lobes(self, params, wi, wo):
         """The lobes stacked on the last axis: ``[specular, diffraction, diffuse]`` × C (0 if off)."""
@@ -275,7 +307,7 @@ class TwoScaleAdapter(AbstractAdapter):
 
         from twoscale.model import lobes
 
-        out = lobes(params, wi, wo, self.config)
+        out = lobes(params, wi, wo, self.model_config, schlick=self.schlick)
         ref = next(iter(out.values()))
         return jnp.concatenate([out.get(n, jnp.zeros_like(ref)) for n in LOBES], axis=-1)
 
@@ -369,8 +401,19 @@ def config_from_dict(d: dict):
     return ModelConfig(**kwargs)
 
 
+def compile_key(adapter: AbstractAdapter):
+    """What a compiled function of the adapter depends on besides array shapes: its static
+    configuration (a two-scale adapter's ``model_config``: Fresnel twins share it)."""
+    return getattr(adapter, "model_config", adapter.config)
+
+
 def adapter_for(config) -> AbstractAdapter:
-    """The adapter for a configuration object."""
+    """The adapter for a configuration object (a dielectric coat's Fresnel form as an array, see
+    :class:`TwoScaleAdapter`)."""
     if isinstance(config, CookTorranceConfig):
         return CookTorranceAdapter(config)
-    return TwoScaleAdapter(config)
+    if config.is_conductor or config.q_mode == "full":
+        return TwoScaleAdapter(config)
+    return TwoScaleAdapter(
+        dataclasses.replace(config, fresnel="exact"), np.asarray(config.fresnel == "schlick")
+    )

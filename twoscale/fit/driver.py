@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from twoscale.fit import solver as _solver
-from twoscale.fit.adapters import adapter_for, floor_albedo_start
+from twoscale.fit.adapters import adapter_for, compile_key, floor_albedo_start
 from twoscale.fit.candidates import (
     NESTED_GRID,
     cross_seed,
@@ -212,7 +212,8 @@ def _run_schedule(
             g = groups[cands[0].group]
             p_best = Problem(g.adapter, g.layout, opts.metric).params(cands[0].y, g.frozen)
             warm.submit_call(
-                ("lobes", g.adapter.config), lambda a=g.adapter, p=p_best: warm_evaluation(a, p)
+                ("lobes", compile_key(g.adapter)),
+                lambda a=g.adapter, p=p_best: warm_evaluation(a, p),
             )
         entries = []
         done: list = []  # starts finished on this stage, each in a minimum of its own
@@ -261,7 +262,7 @@ def _run_schedule(
             by_material = {mat: groups[gi] for mat, gi in chosen.items()}
             if warm is not None:
                 for g in by_material.values():
-                    warm.wait_key(("grid", g.adapter.config))
+                    warm.wait_key(("grid", compile_key(g.adapter)))
             winner, reason = choose_type(best, body_levels(best, by_material, prep))
             rms = {k: v[0] for k, v in best.items()}
             type_selection = {
@@ -479,9 +480,6 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
         sub_groups, sub_cands = make_candidates(
             spec_cfgs, [data_starts(c) for c in spec_cfgs], sub_fixed
         )
-        # With starts="few" a dielectric coat's full model takes its special case's Fresnel
-        # form alone: its solve is compiled once that form is known, not both forms' now.
-        pending = {gi for gi in twins if few}
 
         def warm_full(indices, grids: bool = False):
             """Queue the full models' solves (or, with ``grids``, their evaluation on the MERL
@@ -500,15 +498,17 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                     continue
                 p0 = Problem(g.adapter, g.layout, settings.metric).params(c.y, g.frozen)
                 warm.submit_call(
-                    ("grid", g.adapter.config), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
+                    ("grid", compile_key(g.adapter)), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
                 )
 
         if warm is not None:
             # The special cases' solves first (in order of use), then the full models' (their
-            # layouts do not depend on the start values): compiled while the special cases fit.
+            # layouts do not depend on the start values, nor their compiled solves on a
+            # dielectric coat's Fresnel form, an array of the adapter): compiled while the
+            # special cases fit. A Schlick twin queues nothing new (the key of its exact twin).
             for c in sub_cands:
                 warm.submit(sub_groups[c.group], c.y)
-            warm_full([gi for gi in range(len(configs)) if gi not in pending])
+            warm_full(range(len(configs)))
         # The screening stages: every stage but the last, where a single candidate of the
         # chosen type is refined (the full model refines its own solution there).
         sub_stages = settings.stages[:-1]
@@ -555,13 +555,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
-                pending.add(len(configs) - 1)
         if warm is not None:
-            # A Schlick twin's solve (known only now) before the grid evaluations, which are
-            # needed last (type choice): on an empty compilation cache that order keeps the
-            # twin's first start from compiling its solve itself (≈ 10 s on 2 cores).
-            if pending:
-                warm_full(sorted(pending))
             warm_full(range(len(configs)), grids=True)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:

@@ -184,9 +184,14 @@ class Layout:
 
 
 class Problem(eqx.Module):
-    """A static description of one least-squares problem: model adapter, layout, metric."""
+    """One least-squares problem: model adapter, layout, metric.
 
-    adapter: Any = eqx.field(static=True)
+    The layout and the metric are static; the adapter is a pytree whose configuration is
+    static and whose arrays (a two-scale dielectric coat's Fresnel form) are arguments of the
+    compiled functions, so that the problems of a fit's Fresnel twins share them.
+    """
+
+    adapter: Any
     layout: Layout = eqx.field(static=True)
     metric: str = eqx.field(static=True)
 

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from twoscale.fit.adapters import compile_key
 from twoscale.fit.candidates import Candidate, Group
 from twoscale.fit.residuals import Problem, compressed_residuals, sum_squares
 from twoscale.fit.schedule import Stage
@@ -259,7 +260,7 @@ def _run_solve(g: Group, y0, data, n_active: int, cap: int, m: int, scale, opts)
 
 
 def _group_key(g: Group, opts) -> tuple:
-    return (g.adapter.config, g.layout, opts.metric, opts.solver)
+    return (compile_key(g.adapter), g.layout, opts.metric, opts.solver)
 
 
 #: Background threads that compile ahead (:class:`Warmup`). Two compile the special cases' and
