@@ -213,7 +213,7 @@ class TwoScaleAdapter(AbstractAdapter):
     there and the form as the array ``schlick`` (a leaf, passed to the model as its ``schlick``
     selector), so that a fit's exact and Schlick twins share one compiled solve, one grid
     evaluation and one persistent-cache entry instead of compiling each form (``--preview`` of
-    pvc with an empty cache 18.0 → 15.4 s, see docs/model.md §8). :attr:`config` is the
+    pvc with an empty cache 18.0–19.2 → 16.2–17.1 s, docs/model.md §8). :attr:`config` is the
     configuration with its form, as the fit reports and records it.
     """
 
