@@ -175,6 +175,12 @@ class ModelConfig:
         return self.material == "conductor"
 
     @property
+    def coat_form_selectable(self) -> bool:
+        """A dielectric coat whose Fresnel form may be either the exact equations or Schlick's
+        (not a conductor, and not the full polarisation factor, which needs the exact form)."""
+        return not self.is_conductor and self.q_mode != "full"
+
+    @property
     def has_diffuse(self) -> bool:
         """The diffuse layer is evaluated (dielectrics with ``diffuse=True``; a conductor with
         ``diffuse`` and ``conductor_floor``)."""

@@ -338,7 +338,7 @@ def _channels(params: TwoScaleParams, cfg: ModelConfig, *arrays, schlick=None) -
 
 def _check_selector(cfg: ModelConfig) -> None:
     """A run-time Fresnel selector takes the place of ``fresnel="exact"`` of a dielectric coat."""
-    if cfg.is_conductor or cfg.fresnel != "exact" or cfg.q_mode == "full":
+    if not cfg.coat_form_selectable or cfg.fresnel != "exact":
         raise ValueError(
             "schlick= selects a dielectric coat's Fresnel form at run time: it needs a plastic or "
             "subsurface ModelConfig with fresnel='exact' and q_mode other than 'full', got "

@@ -412,7 +412,7 @@ def adapter_for(config) -> AbstractAdapter:
     :class:`TwoScaleAdapter`)."""
     if isinstance(config, CookTorranceConfig):
         return CookTorranceAdapter(config)
-    if config.is_conductor or config.q_mode == "full":
+    if not config.coat_form_selectable:
         return TwoScaleAdapter(config)
     return TwoScaleAdapter(
         dataclasses.replace(config, fresnel="exact"), np.asarray(config.fresnel == "schlick")

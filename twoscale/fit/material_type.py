@@ -109,9 +109,8 @@ def fresnel_choice_applies(config) -> bool:
     with the exact form and without the full polarisation factor.)"""
     return (
         not isinstance(config, CookTorranceConfig)
-        and not config.is_conductor
+        and config.coat_form_selectable
         and config.fresnel == "exact"
-        and config.q_mode != "full"
     )
 
 
