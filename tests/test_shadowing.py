@@ -17,6 +17,7 @@ from scipy import integrate, special
 from tablegen.check_smith import accuracy_rows, beckmann_lambda, random_points, reference_quad
 from tests.helpers import assert_finite_tree, fd_grad
 from twoscale import shadowing
+from twoscale.geometry import tan_theta
 from twoscale.shadowing import (
     joint_g,
     joint_g_from_lambdas,
@@ -185,6 +186,63 @@ def test_slice_matches_table_path():
     # Differentiable through the slice in p, and usable under jit.
     g = jax.grad(lambda p: jax.jit(lambda p: smith_lambda_spline(p)(2.0))(p))(1.3)
     assert float(g) == pytest.approx(fd_grad(lambda p: LAM["tables"](2.0, p), 1.3), rel=1e-5)
+
+
+def test_lookup_equals_the_table_definitions():
+    """The lookup's four-transcendental form (the knee as one log1p, ``exp(−h)`` as a polynomial
+    times ``e^{−v0}``) equals the coordinate :func:`table_xi` and the reconstruction with
+    :func:`essential` that the table was built with, to rounding, over the whole range of a."""
+    a = np.geomspace(1e-30, 1e30, 4001)
+    for p in (0.1, 0.23, 1.0, 3.7, 10.0):
+        s = smith_lambda_spline(p)
+        frame = shadowing.table_frame(jnp.asarray(p))
+        log_a = np.log(a)
+        log_top = np.minimum(log_a, float(frame["log_a_hi"]))
+        xi = np.clip(
+            np.asarray(shadowing.table_xi(log_top, frame)), shadowing.XI_LO, shadowing.XI_HI
+        )
+        v0 = np.exp(np.minimum(-2.0 * p * log_top, math.log(shadowing._V0_ZERO)))
+        log_m = float(frame["log_es"]) - math.log(math.pi)
+        want = np.exp(
+            log_a + log_m + np.asarray(s.spline(xi)) - np.asarray(shadowing.essential(v0))
+        )
+        got = np.asarray(s(a))
+        big = want > 1e-250
+        assert np.all(got[~big] < 1e-240)
+        np.testing.assert_allclose(got[big], want[big], rtol=1e-11, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_of_cos_equals_lambda_of_tan(dtype):
+    """``SmithLambdaSpline.of_cos`` (the model's per-direction call) equals the slice at
+    ``β tan θ`` in value and in its gradients along β and p, from normal incidence to the
+    horizon (cos θ = 0 and cosines below machine epsilon included: finite, no NaN)."""
+    c = np.concatenate(
+        [[0.0, 1e-20, 1e-9], np.linspace(0.0, 1.0, 2001), np.geomspace(1e-8, 1, 300)]
+    )
+    c = jnp.asarray(c, dtype)
+    rtol = 1e-10 if dtype == jnp.float64 else 3e-4
+    for beta, p in ((0.001, 0.2), (0.05, 0.7), (0.3, 1.0), (1.0, 4.0), (0.2, 10.0)):
+        b, pp = jnp.asarray(beta, dtype), jnp.asarray(p, dtype)
+
+        def new(b, pp, c):
+            return smith_lambda_spline(pp).of_cos(c, b)
+
+        def old(b, pp, c):
+            return smith_lambda_spline(pp)(b * tan_theta(c))
+
+        got, want = np.asarray(new(b, pp, c)), np.asarray(old(b, pp, c))
+        assert got.dtype == dtype and np.all(np.isfinite(got))
+        g1 = 1.0 / (1.0 + want)
+        np.testing.assert_allclose(1.0 / (1.0 + got), g1, rtol=rtol, atol=0)
+        sig = want > 1e-30
+        np.testing.assert_allclose(got[sig], want[sig], rtol=rtol, atol=0)
+        for arg in (0, 1):
+            dg = jax.vmap(jax.grad(lambda *x: 1.0 / (1.0 + new(*x)), argnums=arg), (None, None, 0))
+            dw = jax.vmap(jax.grad(lambda *x: 1.0 / (1.0 + old(*x)), argnums=arg), (None, None, 0))
+            x, y = np.asarray(dg(b, pp, c)), np.asarray(dw(b, pp, c))
+            assert np.all(np.isfinite(x))
+            np.testing.assert_allclose(x, y, rtol=rtol, atol=rtol * np.max(np.abs(y)))
 
 
 # --- joint G -----------------------------------------------------------------------------------

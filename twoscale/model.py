@@ -186,14 +186,14 @@ def _luminance_weights(cfg: ModelConfig) -> np.ndarray:
 
 def _lambdas(cos_i, cos_o, beta, p, path: str):
     """Smith ``Λ`` of both directions (once each); tables: sliced once at ``p``, 1-D lookups."""
-    tan_i, tan_o = geometry.tan_theta(cos_i), geometry.tan_theta(cos_o)
     if path == "exact":
+        tan_i, tan_o = geometry.tan_theta(cos_i), geometry.tan_theta(cos_o)
         return (
             shadowing.smith_lambda(tan_i, beta, p, path=path),
             shadowing.smith_lambda(tan_o, beta, p, path=path),
         )
     lam = shadowing.smith_lambda_spline(p, jnp.result_type(cos_i, p))
-    return lam(beta * tan_i), lam(beta * tan_o)
+    return lam.of_cos(cos_i, beta), lam.of_cos(cos_o, beta)
 
 
 def _g_value(beta, p, cos_i, cos_o, phi, path, correlated):

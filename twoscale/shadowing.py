@@ -237,25 +237,43 @@ def table_quantity(lam, log_a, p):
     return jnp.log(lam) - log_a - log_m + essential(jnp.exp(-2.0 * p * log_a))
 
 
-def _reconstruct(t_val, log_a, log_a_top, p, frame):
-    """``Λ = exp(log a + log m + T − h(a_top^{−2p}))`` with ``a_top = min(a, a_hi)``."""
+def _lambda_lookup(t_of_xi, a2, log_a, p, frame):
+    """Λ from ``a²`` and ``log a`` (the same ``a``, in range) and the table ``T`` as a function of ξ.
+
+    The module docstring's coordinate and reconstruction, written with four transcendentals per
+    sample instead of eight (the per-cell cost of ``G`` on the MERL grid, where Λ is most of the
+    work):
+
+    * the knee of :func:`table_xi`, ``½ softplus(2(½ − η))`` with ``η = log(a E[R])``, is
+      ``½ log1p(e^{1 − 2 log E[R]} / a²)``: one ``log1p`` of a quotient. ``a²`` is held inside
+      ``[e^{−2} a_lo², a_hi²]`` for the knee only (``a_lo``: the table's small-a edge, where
+      ``ξ = XI_LO``; ξ increases with ``a``, so below it ξ is clipped to ``XI_LO`` either way)
+      so that the quotient stays finite;
+    * ``exp(−h(v0)) = e^{−v0} (1 + v0 + v0²/2)`` (:func:`essential`): the reconstruction
+      ``Λ = exp(log a + log m + T − v0) (1 + v0 (1 + v0/2))``, ``v0 = a_top^{−2p}``.
+
+    The same values as :func:`table_xi` and :func:`essential` to rounding (``tests/test_shadowing.py``).
+    """
+    log_a_top = jnp.minimum(log_a, frame["log_a_hi"])
+    log_a2_lo = -math.log(V_MAX) / p - 2.0  # 2 log a_lo − 2
+    a2_knee = jnp.clip(a2, jnp.exp(log_a2_lo), jnp.exp(2.0 * frame["log_a_hi"]))
+    knee = 0.5 * jnp.log1p(jnp.exp(1.0 - 2.0 * frame["log_es"]) / a2_knee)
+    xi = jnp.clip(log_a_top + frame["log_es"] - (frame["s"] - 1.0) * knee, XI_LO, XI_HI)
+    v0 = _v0(log_a_top, p)
     log_m = frame["log_es"] - math.log(math.pi)
-    return jnp.exp(log_a + log_m + t_val - essential(_v0(log_a_top, p)))
+    return jnp.exp(log_a + log_m + t_of_xi(xi) - v0) * (1.0 + v0 * (1.0 + 0.5 * v0))
 
 
-def _log_a_parts(a, frame):
-    """``log a`` (floored at the smallest normal) and ``log min(a, a_hi)``."""
-    log_a = jnp.log(jnp.maximum(a, tiny(a.dtype)))
-    return log_a, jnp.minimum(log_a, frame["log_a_hi"])
+def _a_parts(a):
+    """``a²`` and ``log a`` (``a`` floored at the smallest normal) of ``a ∈ [0, a_max]``."""
+    return a * a, jnp.log(jnp.maximum(a, tiny(a.dtype)))
 
 
 def _lambda_table(a, p):
     p = jnp.clip(p, P_MIN, P_MAX)
     frame = table_frame(p)
-    log_a, log_a_top = _log_a_parts(a, frame)
-    xi = jnp.clip(table_xi(log_a_top, frame), XI_LO, XI_HI)
-    t_val = tables.spline(TABLE_NAME, a.dtype)(jnp.log(p), xi)
-    return _reconstruct(t_val, log_a, log_a_top, p, frame)
+    spline = tables.spline(TABLE_NAME, a.dtype)
+    return _lambda_lookup(lambda xi: spline(jnp.log(p), xi), *_a_parts(a), p, frame)
 
 
 class SmithLambdaSpline(eqx.Module):
@@ -281,10 +299,24 @@ class SmithLambdaSpline(eqx.Module):
     def __call__(self, a):
         """Λ(a) for ``a = β tan θ ≥ 0`` (any shape)."""
         a = jnp.clip(jnp.asarray(a, self.p.dtype), 0.0, a_max(self.p.dtype))
-        frame = self._frame()
-        log_a, log_a_top = _log_a_parts(a, frame)
-        xi = jnp.clip(table_xi(log_a_top, frame), XI_LO, XI_HI)
-        return _reconstruct(self.spline(xi), log_a, log_a_top, self.p, frame)
+        return _lambda_lookup(self.spline, *_a_parts(a), self.p, self._frame())
+
+    def of_cos(self, cos_theta, beta):
+        """Λ of a direction, ``Λ(β tan θ)``, from its ``cos θ ∈ [0, 1]`` and the roughness β.
+
+        The same value as ``self(beta * geometry.tan_theta(cos_theta))`` to rounding, from
+        ``a² = β² (1 − cos²θ)/cos²θ`` (the cosine floored at machine epsilon, as
+        :func:`twoscale.geometry.tan_theta`) and ``log a = ½ log a²``: no square root, no
+        separate ``tan θ``. The model's shadowing calls this once per direction.
+        """
+        dt = self.p.dtype
+        c = jnp.asarray(cos_theta, dt)
+        floor = jnp.finfo(dt).eps
+        d = jnp.where(c > floor, c, floor)
+        tan2 = jnp.maximum((1.0 - c) * (1.0 + c), 0.0) / (d * d)
+        a2 = jnp.minimum(jnp.asarray(beta, dt) ** 2 * tan2, a_max(dt) ** 2)
+        log_a = 0.5 * jnp.log(jnp.maximum(a2, tiny(dt)))
+        return _lambda_lookup(self.spline, a2, log_a, self.p, self._frame())
 
     def g1(self, a):
         """``G1 = 1/(1 + Λ(a))``."""
