@@ -36,6 +36,12 @@ CASES = [
     (PLASTIC, twoscale.ModelConfig(material="plastic", q_mode="full", apparatus=True)),
     (SUBSURFACE, twoscale.ModelConfig(material="subsurface", shadowing="uncorrelated")),
     (CONDUCTOR, twoscale.ModelConfig(diffraction=False)),
+    # Without the apparatus factor the grid path unfolds per-cell weights, not the total:
+    # a Lambertian body (formed after the unfolding) and the full Q (a weight per channel).
+    (
+        PLASTIC.replace(e=None),
+        twoscale.ModelConfig(material="plastic", diffuse_fresnel=False, q_mode="full"),
+    ),
 ]
 
 
