@@ -138,6 +138,34 @@ def test_brdf_grid_gradients_match_brdf_conductor():
     _check_grid_gradients(0)
 
 
+@pytest.mark.parametrize("correlated", [True, False])
+def test_shadowing_rule_equals_forward_mode(correlated):
+    """G's hand-written rule along β and p (tables path, the fit's tangents) equals forward-mode
+    differentiation of G itself, at cells from the normal to the horizon (equal Λ of both
+    directions included, where the correlated form's max and min swap)."""
+    rng = np.random.default_rng(7)
+    cos_i = jnp.asarray(np.concatenate([rng.random(400), [1.0, 0.5, 1e-9, 0.3]]))
+    cos_o = jnp.asarray(np.concatenate([rng.random(400), [1.0, 0.5, 0.7, 0.3]]))
+    phi = jnp.asarray(np.concatenate([rng.random(400) * np.pi, [0.0, 1.0, 2.0, 3.0]]))
+    static = ("tables", correlated)
+    for beta, p in ((0.002, 0.25), (0.1, 1.5), (0.8, 6.0)):
+        x = (jnp.float64(beta), jnp.float64(p))
+        for tangent in ((1.0, 0.0), (0.0, 1.0), (0.3, -2.0)):
+
+            def rule(b, q):
+                return model._shadowing_g(static, b, q, cos_i, cos_o, phi)
+
+            def plain(b, q):
+                return model._g_of_cells(static, b, q, cos_i, cos_o, phi)
+
+            got, d_got = jax.jvp(rule, x, tangent)
+            _, d_want = jax.jvp(plain, x, tangent)
+            # The value is G's own, bit for bit (forward mode of the plain G rounds its value
+            # differently in the last bit at a few cells).
+            np.testing.assert_array_equal(got, plain(*x))
+            np.testing.assert_allclose(d_got, d_want, rtol=1e-9, atol=1e-14)
+
+
 def test_shadowing_rule_matches_finite_differences():
     """The custom forward rule of G: d/dβ, d/dp and d/d(directions) against central differences."""
     cos_i = jnp.asarray([0.9, 0.5, 0.1, 1e-3])

@@ -222,15 +222,23 @@ def test_of_cos_equals_lambda_of_tan(dtype):
     )
     c = jnp.asarray(c, dtype)
     rtol = 1e-10 if dtype == jnp.float64 else 3e-4
+
+    def new(b, pp, c):
+        return smith_lambda_spline(pp).of_cos(c, b)
+
+    def old(b, pp, c):
+        return smith_lambda_spline(pp)(b * tan_theta(c))
+
+    # ∂G1/∂β and ∂G1/∂p at every cosine, compiled once for all (β, p).
+    grads = {
+        (f, arg): jax.jit(
+            jax.vmap(jax.grad(lambda *x, f=f: 1.0 / (1.0 + f(*x)), argnums=arg), (None, None, 0))
+        )
+        for f in (new, old)
+        for arg in (0, 1)
+    }
     for beta, p in ((0.001, 0.2), (0.05, 0.7), (0.3, 1.0), (1.0, 4.0), (0.2, 10.0)):
         b, pp = jnp.asarray(beta, dtype), jnp.asarray(p, dtype)
-
-        def new(b, pp, c):
-            return smith_lambda_spline(pp).of_cos(c, b)
-
-        def old(b, pp, c):
-            return smith_lambda_spline(pp)(b * tan_theta(c))
-
         got, want = np.asarray(new(b, pp, c)), np.asarray(old(b, pp, c))
         assert got.dtype == dtype and np.all(np.isfinite(got))
         g1 = 1.0 / (1.0 + want)
@@ -238,11 +246,35 @@ def test_of_cos_equals_lambda_of_tan(dtype):
         sig = want > 1e-30
         np.testing.assert_allclose(got[sig], want[sig], rtol=rtol, atol=0)
         for arg in (0, 1):
-            dg = jax.vmap(jax.grad(lambda *x: 1.0 / (1.0 + new(*x)), argnums=arg), (None, None, 0))
-            dw = jax.vmap(jax.grad(lambda *x: 1.0 / (1.0 + old(*x)), argnums=arg), (None, None, 0))
-            x, y = np.asarray(dg(b, pp, c)), np.asarray(dw(b, pp, c))
+            x = np.asarray(grads[new, arg](b, pp, c))
+            y = np.asarray(grads[old, arg](b, pp, c))
             assert np.all(np.isfinite(x))
             np.testing.assert_allclose(x, y, rtol=rtol, atol=rtol * np.max(np.abs(y)))
+
+
+@pytest.mark.parametrize("beta", [0.001, 0.05, 1.0])
+def test_lambda_partials_equal_forward_mode(beta):
+    """The hand-written partials of Λ along β and p equal forward-mode differentiation of the
+    same lookup, from normal incidence to the horizon, for p across the table (and beyond it,
+    where the slice clamps p and ∂/∂p is 0)."""
+    c = np.concatenate(
+        [[0.0, 1e-20, 1e-9, 1.0], np.linspace(0, 1, 1001), np.geomspace(1e-8, 1, 200)]
+    )
+    c = jnp.asarray(c)
+    for p in (0.05, 0.1, 0.2, 0.5, 1.7, 10.0, 12.0):
+
+        def lam(b, q):
+            return smith_lambda_spline(q).of_cos(c, b)
+
+        value, d_beta, d_p = shadowing.lambda_partials(c, beta, p)
+        x = (jnp.float64(beta), jnp.float64(p))
+        want, want_beta = jax.jvp(lam, x, (1.0, 0.0))
+        _, want_p = jax.jvp(lam, x, (0.0, 1.0))
+        np.testing.assert_allclose(value, want, rtol=1e-13, atol=0)
+        for got, ref in ((d_beta, want_beta), (d_p, want_p)):
+            got, ref = np.asarray(got), np.asarray(ref)
+            assert np.all(np.isfinite(got))
+            np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-200)
 
 
 # --- joint G -----------------------------------------------------------------------------------

@@ -96,6 +96,7 @@ __all__ = [
     "joint_g",
     "joint_g_from_lambdas",
     "smith_lambda_spline",
+    "lambda_partials",
     "SmithLambdaSpline",
     "mean_slope",
 ]
@@ -321,6 +322,74 @@ class SmithLambdaSpline(eqx.Module):
     def g1(self, a):
         """``G1 = 1/(1 + Λ(a))``."""
         return 1.0 / (1.0 + self(a))
+
+
+def lambda_partials(cos_theta, beta, p):
+    """Λ(β tan θ; p) of the table path and its partial derivatives along β and p, by hand.
+
+    ``(Λ, ∂Λ/∂β, ∂Λ/∂p)``, each of ``cos_theta``'s shape; ``beta`` and ``p`` scalars. Λ is
+    :meth:`SmithLambdaSpline.of_cos` of :func:`smith_lambda_spline` (the same value); the
+    partials are those of that function, written out from :func:`_lambda_lookup`'s
+    reconstruction ``log Λ = log a + log m + T(ξ) − v0 + log(1 + v0 + v0²/2)``:
+    ``∂ log Λ/∂ log a = 1 + T'(ξ) ∂ξ/∂log a − (1 − q) ∂v0/∂log a`` with
+    ``q = (1 + v0)/(1 + v0 + v0²/2)``, and along p the same terms at fixed a plus the
+    table's own dependence on p (its slice's coefficients, ``log E[R]``, the coordinate's
+    slope s and large-a edge, whose derivatives come from one JVP of the slice per call).
+    Per sample this costs the slope and one tangent of the 1-D spline at the value's
+    indices and a few products, where forward-mode differentiation of the lookup pushed
+    each tangent through every operation of it (the fit's Jacobian: G and its derivatives
+    along β and p were about half of its time). Equal to ``jax.jvp`` of ``of_cos`` to
+    rounding (``tests/test_shadowing.py``).
+    """
+    dtype = float_dtype(cos_theta, beta, p, default=float)
+    p = jnp.asarray(p, dtype)
+    # The slice itself as the value's (bit-equal), its derivative along p from a JVP (per call).
+    sl = smith_lambda_spline(p, dtype)
+    _, dsl = jax.jvp(lambda q: smith_lambda_spline(q, dtype), (p,), (jnp.ones_like(p),))
+    lam = sl.of_cos(cos_theta, beta)
+    b = jnp.asarray(beta, dtype)
+    c = jnp.asarray(cos_theta, dtype)
+    # a² and log a exactly as of_cos forms them; ∂ log a/∂ log β = 1 between the floors.
+    floor = jnp.finfo(dtype).eps
+    d = jnp.where(c > floor, c, floor)
+    a2_raw = b**2 * (jnp.maximum((1.0 - c) * (1.0 + c), 0.0) / (d * d))
+    a2 = jnp.minimum(a2_raw, a_max(dtype) ** 2)
+    moves = (a2_raw < a_max(dtype) ** 2) & (a2 > tiny(dtype))
+    log_a = 0.5 * jnp.log(jnp.maximum(a2, tiny(dtype)))
+    pc, log_es, s, log_a_hi = sl.p, sl.log_es, sl.s, sl.log_a_hi
+    d_p, d_log_es, d_s, d_log_a_hi = dsl.p, dsl.log_es, dsl.s, dsl.log_a_hi
+    # The coordinate (see _lambda_lookup), with which clamps are active.
+    below_top = log_a < log_a_hi
+    log_a_top = jnp.minimum(log_a, log_a_hi)
+    log_v_max = math.log(V_MAX)
+    a2_lo, a2_hi = jnp.exp(-log_v_max / pc - 2.0), jnp.exp(2.0 * log_a_hi)
+    a2_knee = jnp.clip(a2, a2_lo, a2_hi)
+    x = jnp.exp(1.0 - 2.0 * log_es) / a2_knee
+    knee = 0.5 * jnp.log1p(x)
+    xi_raw = log_a_top + log_es - (s - 1.0) * knee
+    xi_free = (xi_raw > XI_LO) & (xi_raw < XI_HI)
+    xi = jnp.clip(xi_raw, XI_LO, XI_HI)
+    slope, (t_p,) = sl.spline.slope_and_tangents(xi, dsl.spline.coeffs)
+    expo = -2.0 * pc * log_a_top
+    v0_free = expo < math.log(_V0_ZERO)
+    v0 = jnp.exp(jnp.minimum(expo, math.log(_V0_ZERO)))
+    one_minus_q = 1.0 - (1.0 + v0) / (1.0 + v0 * (1.0 + 0.5 * v0))
+    # Along log a.
+    d_top = below_top.astype(dtype)
+    d_knee = jnp.where((a2 > a2_lo) & (a2 < a2_hi), -x / (1.0 + x), 0.0)
+    d_xi = jnp.where(xi_free, d_top - (s - 1.0) * d_knee, 0.0)
+    d_v0 = jnp.where(v0_free, -2.0 * pc * v0 * d_top, 0.0)
+    g_log_a = 1.0 + slope * d_xi - one_minus_q * d_v0
+    # Along p at fixed a.
+    d_top_p = jnp.where(below_top, 0.0, d_log_a_hi)
+    d_log_a2_knee = jnp.where(
+        a2 <= a2_lo, log_v_max / (pc * pc) * d_p, jnp.where(a2 >= a2_hi, 2.0 * d_log_a_hi, 0.0)
+    )
+    d_knee_p = 0.5 * x * (-2.0 * d_log_es - d_log_a2_knee) / (1.0 + x)
+    d_xi_p = jnp.where(xi_free, d_top_p + d_log_es - d_s * knee - (s - 1.0) * d_knee_p, 0.0)
+    d_v0_p = jnp.where(v0_free, -2.0 * v0 * (d_p * log_a_top + pc * d_top_p), 0.0)
+    g_p = d_log_es + t_p + slope * d_xi_p - one_minus_q * d_v0_p
+    return lam, jnp.where(moves, lam * g_log_a / b, 0.0), lam * g_p
 
 
 def smith_lambda_spline(p, dtype=None) -> SmithLambdaSpline:

@@ -197,6 +197,36 @@ class Spline(eqx.Module):
             block = jnp.tensordot(w.astype(dt), block, axes=(0, 0))
         return Spline(block, self.lo[m:], self.step[m:], self.n[m:], self.order)
 
+    def slope_and_tangents(self, x, *others):
+        """A 1-D spline (no components) at ``x``: its derivative along ``x`` and the same
+        B-spline weights applied to each array of ``others`` (coefficients of this spline's
+        shape, e.g. their derivatives along a parameter the spline was sliced at).
+
+        For forward rules written by hand (:func:`twoscale.shadowing.lambda_partials`): one set
+        of indices and weights serves the slope and every tangent. ``x`` outside the axis is
+        clamped as in a call, where the slope is 0.
+        """
+        if self.ndim != 1 or self.coeffs.ndim != 1 or self.order != 3:
+            raise ValueError("slope_and_tangents needs a 1-D cubic spline without components")
+        dt = self.dtype
+        x = jnp.asarray(x, dt)
+        lo, st, n = self.lo[0], self.step[0], self.n[0]
+        i, w = _weights(x, lo, st, n, self.order)
+        t = (jnp.clip(x, lo, lo + st * (n - 1)) - lo) / st - i
+        inside = (x > lo) & (x < lo + st * (n - 1))
+        # d/dt of the four cubic B-spline weights of _weights, over the step.
+        dw = (
+            -0.5 * (1.0 - t) ** 2,
+            (1.5 * t - 2.0) * t,
+            (-1.5 * t + 1.0) * t + 0.5,
+            0.5 * t * t,
+        )
+        c = self.coeffs.astype(dt)
+        slope = sum(dw[k] * c[i + k] for k in range(4))
+        slope = jnp.where(inside, slope / st, 0.0)
+        tangents = [sum(w[..., k] * o.astype(dt)[i + k] for k in range(4)) for o in others]
+        return slope, tangents
+
     def call_shared_first(self, x0, x1):
         """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
 
