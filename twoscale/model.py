@@ -278,17 +278,11 @@ def _shadowing_g_jvp(static, primals, tangents):
     lam_i, di_beta, di_p = shadowing.lambda_partials(cos_i, beta, p)
     lam_o, do_beta, do_p = shadowing.lambda_partials(cos_o, beta, p)
     g = shadowing.joint_g_from_lambdas(lam_i, lam_o, phi, correlated=correlated, wrapped=True)
-    if correlated:
-        lam = 4.41 * phi / (4.41 * phi + 1.0)
-        i_hi = lam_i >= lam_o
 
-        def d_g(di, do):
-            return -g * g * (jnp.where(i_hi, di, do) + lam * jnp.where(i_hi, do, di))
-
-    else:
-
-        def d_g(di, do):
-            return -g * (di / (1.0 + lam_i) + do / (1.0 + lam_o))
+    def d_g(d_i, d_o):
+        return shadowing.joint_g_tangent(
+            g, lam_i, lam_o, d_i, d_o, phi, correlated=correlated, wrapped=True
+        )
 
     dout = jnp.zeros_like(g)
     if not _is_zero(t_beta):

@@ -95,6 +95,7 @@ __all__ = [
     "van_ginneken",
     "joint_g",
     "joint_g_from_lambdas",
+    "joint_g_tangent",
     "smith_lambda_spline",
     "lambda_partials",
     "SmithLambdaSpline",
@@ -255,19 +256,51 @@ def _lambda_lookup(t_of_xi, a2, log_a, p, frame):
 
     The same values as :func:`table_xi` and :func:`essential` to rounding (``tests/test_shadowing.py``).
     """
-    log_a_top = jnp.minimum(log_a, frame["log_a_hi"])
-    log_a2_lo = -math.log(V_MAX) / p - 2.0  # 2 log a_lo − 2
-    a2_knee = jnp.clip(a2, jnp.exp(log_a2_lo), jnp.exp(2.0 * frame["log_a_hi"]))
-    knee = 0.5 * jnp.log1p(jnp.exp(1.0 - 2.0 * frame["log_es"]) / a2_knee)
-    xi = jnp.clip(log_a_top + frame["log_es"] - (frame["s"] - 1.0) * knee, XI_LO, XI_HI)
-    v0 = _v0(log_a_top, p)
+    k = _lookup_parts(a2, log_a, p, frame)
     log_m = frame["log_es"] - math.log(math.pi)
-    return jnp.exp(log_a + log_m + t_of_xi(xi) - v0) * (1.0 + v0 * (1.0 + 0.5 * v0))
+    return jnp.exp(log_a + log_m + t_of_xi(k["xi"]) - k["v0"]) * (
+        1.0 + k["v0"] * (1.0 + 0.5 * k["v0"])
+    )
+
+
+def _lookup_parts(a2, log_a, p, frame):
+    """The per-sample quantities of :func:`_lambda_lookup` (shared with
+    :func:`lambda_partials`, which also needs which clamps are active)."""
+    log_a_top = jnp.minimum(log_a, frame["log_a_hi"])
+    a2_lo = jnp.exp(-math.log(V_MAX) / p - 2.0)  # e^{−2} a_lo²
+    a2_hi = jnp.exp(2.0 * frame["log_a_hi"])
+    x = jnp.exp(1.0 - 2.0 * frame["log_es"]) / jnp.clip(a2, a2_lo, a2_hi)
+    knee = 0.5 * jnp.log1p(x)
+    xi_raw = log_a_top + frame["log_es"] - (frame["s"] - 1.0) * knee
+    expo = -2.0 * p * log_a_top
+    return {
+        "log_a_top": log_a_top,
+        "a2_lo": a2_lo,
+        "a2_hi": a2_hi,
+        "x": x,
+        "knee": knee,
+        "xi_raw": xi_raw,
+        "xi": jnp.clip(xi_raw, XI_LO, XI_HI),
+        "expo": expo,
+        "v0": _v0(log_a_top, p),
+    }
 
 
 def _a_parts(a):
     """``a²`` and ``log a`` (``a`` floored at the smallest normal) of ``a ∈ [0, a_max]``."""
     return a * a, jnp.log(jnp.maximum(a, tiny(a.dtype)))
+
+
+def _a_parts_of_cos(cos_theta, beta, dtype):
+    """``(β² tan²θ, a², log a)`` of a direction: ``a² = β² tan²θ`` capped at ``a_max²``, the
+    cosine floored at machine epsilon as :func:`twoscale.geometry.tan_theta`, ``log a``
+    floored at the smallest normal ``a²``."""
+    c = jnp.asarray(cos_theta, dtype)
+    floor = jnp.finfo(dtype).eps
+    d = jnp.where(c > floor, c, floor)
+    a2_raw = jnp.asarray(beta, dtype) ** 2 * (jnp.maximum((1.0 - c) * (1.0 + c), 0.0) / (d * d))
+    a2 = jnp.minimum(a2_raw, a_max(dtype) ** 2)
+    return a2_raw, a2, 0.5 * jnp.log(jnp.maximum(a2, tiny(dtype)))
 
 
 def _lambda_table(a, p):
@@ -310,13 +343,7 @@ class SmithLambdaSpline(eqx.Module):
         :func:`twoscale.geometry.tan_theta`) and ``log a = ½ log a²``: no square root, no
         separate ``tan θ``. The model's shadowing calls this once per direction.
         """
-        dt = self.p.dtype
-        c = jnp.asarray(cos_theta, dt)
-        floor = jnp.finfo(dt).eps
-        d = jnp.where(c > floor, c, floor)
-        tan2 = jnp.maximum((1.0 - c) * (1.0 + c), 0.0) / (d * d)
-        a2 = jnp.minimum(jnp.asarray(beta, dt) ** 2 * tan2, a_max(dt) ** 2)
-        log_a = 0.5 * jnp.log(jnp.maximum(a2, tiny(dt)))
+        _, a2, log_a = _a_parts_of_cos(cos_theta, beta, self.p.dtype)
         return _lambda_lookup(self.spline, a2, log_a, self.p, self._frame())
 
     def g1(self, a):
@@ -348,46 +375,34 @@ def lambda_partials(cos_theta, beta, p):
     _, dsl = jax.jvp(lambda q: smith_lambda_spline(q, dtype), (p,), (jnp.ones_like(p),))
     lam = sl.of_cos(cos_theta, beta)
     b = jnp.asarray(beta, dtype)
-    c = jnp.asarray(cos_theta, dtype)
-    # a² and log a exactly as of_cos forms them; ∂ log a/∂ log β = 1 between the floors.
-    floor = jnp.finfo(dtype).eps
-    d = jnp.where(c > floor, c, floor)
-    a2_raw = b**2 * (jnp.maximum((1.0 - c) * (1.0 + c), 0.0) / (d * d))
-    a2 = jnp.minimum(a2_raw, a_max(dtype) ** 2)
+    # ∂ log a/∂ log β = 1 between the floors of a².
+    a2_raw, a2, log_a = _a_parts_of_cos(cos_theta, beta, dtype)
     moves = (a2_raw < a_max(dtype) ** 2) & (a2 > tiny(dtype))
-    log_a = 0.5 * jnp.log(jnp.maximum(a2, tiny(dtype)))
-    pc, log_es, s, log_a_hi = sl.p, sl.log_es, sl.s, sl.log_a_hi
+    pc, s, log_a_hi = sl.p, sl.s, sl.log_a_hi
     d_p, d_log_es, d_s, d_log_a_hi = dsl.p, dsl.log_es, dsl.s, dsl.log_a_hi
-    # The coordinate (see _lambda_lookup), with which clamps are active.
+    k = _lookup_parts(a2, log_a, pc, sl._frame())
+    x, knee, v0 = k["x"], k["knee"], k["v0"]
     below_top = log_a < log_a_hi
-    log_a_top = jnp.minimum(log_a, log_a_hi)
-    log_v_max = math.log(V_MAX)
-    a2_lo, a2_hi = jnp.exp(-log_v_max / pc - 2.0), jnp.exp(2.0 * log_a_hi)
-    a2_knee = jnp.clip(a2, a2_lo, a2_hi)
-    x = jnp.exp(1.0 - 2.0 * log_es) / a2_knee
-    knee = 0.5 * jnp.log1p(x)
-    xi_raw = log_a_top + log_es - (s - 1.0) * knee
-    xi_free = (xi_raw > XI_LO) & (xi_raw < XI_HI)
-    xi = jnp.clip(xi_raw, XI_LO, XI_HI)
-    slope, (t_p,) = sl.spline.slope_and_tangents(xi, dsl.spline.coeffs)
-    expo = -2.0 * pc * log_a_top
-    v0_free = expo < math.log(_V0_ZERO)
-    v0 = jnp.exp(jnp.minimum(expo, math.log(_V0_ZERO)))
+    xi_free = (k["xi_raw"] > XI_LO) & (k["xi_raw"] < XI_HI)
+    v0_free = k["expo"] < math.log(_V0_ZERO)
+    slope, (t_p,) = sl.spline.slope_and_tangents(k["xi"], dsl.spline.coeffs)
     one_minus_q = 1.0 - (1.0 + v0) / (1.0 + v0 * (1.0 + 0.5 * v0))
     # Along log a.
     d_top = below_top.astype(dtype)
-    d_knee = jnp.where((a2 > a2_lo) & (a2 < a2_hi), -x / (1.0 + x), 0.0)
+    d_knee = jnp.where((a2 > k["a2_lo"]) & (a2 < k["a2_hi"]), -x / (1.0 + x), 0.0)
     d_xi = jnp.where(xi_free, d_top - (s - 1.0) * d_knee, 0.0)
     d_v0 = jnp.where(v0_free, -2.0 * pc * v0 * d_top, 0.0)
     g_log_a = 1.0 + slope * d_xi - one_minus_q * d_v0
     # Along p at fixed a.
     d_top_p = jnp.where(below_top, 0.0, d_log_a_hi)
     d_log_a2_knee = jnp.where(
-        a2 <= a2_lo, log_v_max / (pc * pc) * d_p, jnp.where(a2 >= a2_hi, 2.0 * d_log_a_hi, 0.0)
+        a2 <= k["a2_lo"],
+        math.log(V_MAX) / (pc * pc) * d_p,
+        jnp.where(a2 >= k["a2_hi"], 2.0 * d_log_a_hi, 0.0),
     )
     d_knee_p = 0.5 * x * (-2.0 * d_log_es - d_log_a2_knee) / (1.0 + x)
     d_xi_p = jnp.where(xi_free, d_top_p + d_log_es - d_s * knee - (s - 1.0) * d_knee_p, 0.0)
-    d_v0_p = jnp.where(v0_free, -2.0 * v0 * (d_p * log_a_top + pc * d_top_p), 0.0)
+    d_v0_p = jnp.where(v0_free, -2.0 * v0 * (d_p * k["log_a_top"] + pc * d_top_p), 0.0)
     g_p = d_log_es + t_p + slope * d_xi_p - one_minus_q * d_v0_p
     return lam, jnp.where(moves, lam * g_log_a / b, 0.0), lam * g_p
 
@@ -498,6 +513,19 @@ def joint_g_from_lambdas(lambda_i, lambda_o, phi, *, correlated: bool = True, wr
         lam = 4.41 * phi / (4.41 * phi + 1.0) if wrapped else van_ginneken(phi)
         return 1.0 / (1.0 + hi + lam * lo)
     return 1.0 / ((1.0 + lambda_i) * (1.0 + lambda_o))
+
+
+def joint_g_tangent(
+    g, lambda_i, lambda_o, d_i, d_o, phi, *, correlated: bool = True, wrapped=False
+):
+    """The derivative of :func:`joint_g_from_lambdas`'s ``g`` (its value, passed in) along
+    tangents ``d_i``, ``d_o`` of ``Λ_i``, ``Λ_o`` (``phi`` held fixed; the same arguments
+    otherwise). Where ``Λ_i = Λ_o`` the max and the min are the same function: either branch."""
+    if correlated:
+        lam = 4.41 * phi / (4.41 * phi + 1.0) if wrapped else van_ginneken(phi)
+        i_hi = lambda_i >= lambda_o
+        return -g * g * (jnp.where(i_hi, d_i, d_o) + lam * jnp.where(i_hi, d_o, d_i))
+    return -g * (d_i / (1.0 + lambda_i) + d_o / (1.0 + lambda_o))
 
 
 def joint_g(tan_theta_i, tan_theta_o, phi, beta, p, *, correlated: bool = True, path="tables"):
