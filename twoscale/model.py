@@ -715,8 +715,8 @@ def brdf_grid(
     # copied (2-core machine, the default conductor on the MERL grid, five interleaved runs
     # each: median 50 → 46 ms, with the faster Λ; the total itself unfolded: 50 ms).
     g = None
+    above, cos_i, cos_o, phi = _guarded_cells(ch, grid.cos_i, grid.cos_o, grid.phi)
     if config.specular or config.diffraction:
-        _, cos_i, cos_o, phi = _guarded_cells(ch, grid.cos_i, grid.cos_o, grid.phi)
         # Materialised: the weights share it (else XLA stores Λ's intermediate arrays to feed
         # each weight's own copy of G, measured 66 against 41 ms).
         g = jax.lax.optimization_barrier(_cell_g(ch, cos_i, cos_o, phi, config))
@@ -728,7 +728,7 @@ def brdf_grid(
     # A Lambertian layer is ρ_d/π above the horizon: formed after the unfolding, not stored.
     lambertian = config.has_diffuse and _lambertian_body(config)
     if lambertian:
-        weights["diffuse"] = (grid.cos_i > 0.0) & (grid.cos_o > 0.0)
+        weights["diffuse"] = above
     total = 0.0
     for key, w in weights.items():
         w = jnp.take(w, grid.unfold, axis=2)

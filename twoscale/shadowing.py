@@ -257,10 +257,14 @@ def _lambda_lookup(t_of_xi, a2, log_a, p, frame):
     The same values as :func:`table_xi` and :func:`essential` to rounding (``tests/test_shadowing.py``).
     """
     k = _lookup_parts(a2, log_a, p, frame)
+    return _lambda_from_parts(t_of_xi(k["xi"]), log_a, k, frame)
+
+
+def _lambda_from_parts(t_val, log_a, k, frame):
+    """``Λ = exp(log a + log m + T − v0) (1 + v0 (1 + v0/2))`` from the table value ``T`` at
+    ``k["xi"]`` and the quantities ``k`` of :func:`_lookup_parts`."""
     log_m = frame["log_es"] - math.log(math.pi)
-    return jnp.exp(log_a + log_m + t_of_xi(k["xi"]) - k["v0"]) * (
-        1.0 + k["v0"] * (1.0 + 0.5 * k["v0"])
-    )
+    return jnp.exp(log_a + log_m + t_val - k["v0"]) * (1.0 + k["v0"] * (1.0 + 0.5 * k["v0"]))
 
 
 def _lookup_parts(a2, log_a, p, frame):
@@ -363,7 +367,7 @@ def lambda_partials(cos_theta, beta, p):
     table's own dependence on p (its slice's coefficients, ``log E[R]``, the coordinate's
     slope s and large-a edge, whose derivatives come from one JVP of the slice per call).
     Per sample this costs the slope and one tangent of the 1-D spline at the value's
-    indices and a few products, where forward-mode differentiation of the lookup pushed
+    gathered coefficients and a few products, where forward-mode differentiation of the lookup pushed
     each tangent through every operation of it (the fit's Jacobian: G and its derivatives
     along β and p were about half of its time). Equal to ``jax.jvp`` of ``of_cos`` to
     rounding (``tests/test_shadowing.py``).
@@ -373,19 +377,21 @@ def lambda_partials(cos_theta, beta, p):
     # The slice itself as the value's (bit-equal), its derivative along p from a JVP (per call).
     sl = smith_lambda_spline(p, dtype)
     _, dsl = jax.jvp(lambda q: smith_lambda_spline(q, dtype), (p,), (jnp.ones_like(p),))
-    lam = sl.of_cos(cos_theta, beta)
     b = jnp.asarray(beta, dtype)
+    # a², log a and the lookup's quantities once, for the value (as of_cos) and the partials;
     # ∂ log a/∂ log β = 1 between the floors of a².
     a2_raw, a2, log_a = _a_parts_of_cos(cos_theta, beta, dtype)
     moves = (a2_raw < a_max(dtype) ** 2) & (a2 > tiny(dtype))
     pc, s, log_a_hi = sl.p, sl.s, sl.log_a_hi
     d_p, d_log_es, d_s, d_log_a_hi = dsl.p, dsl.log_es, dsl.s, dsl.log_a_hi
-    k = _lookup_parts(a2, log_a, pc, sl._frame())
+    frame = sl._frame()
+    k = _lookup_parts(a2, log_a, pc, frame)
     x, knee, v0 = k["x"], k["knee"], k["v0"]
     below_top = log_a < log_a_hi
     xi_free = (k["xi_raw"] > XI_LO) & (k["xi_raw"] < XI_HI)
     v0_free = k["expo"] < math.log(_V0_ZERO)
-    slope, (t_p,) = sl.spline.slope_and_tangents(k["xi"], dsl.spline.coeffs)
+    t_val, slope, (t_p,) = sl.spline.value_slope_and_tangents(k["xi"], dsl.spline.coeffs)
+    lam = _lambda_from_parts(t_val, log_a, k, frame)
     one_minus_q = 1.0 - (1.0 + v0) / (1.0 + v0 * (1.0 + 0.5 * v0))
     # Along log a.
     d_top = below_top.astype(dtype)

@@ -120,14 +120,20 @@ def bspline_coefficients(values: np.ndarray, n_axes: int) -> np.ndarray:
 ORDERS = (3, 1)
 
 
+def _position(x, lo: float, step: float, n: int):
+    """The cell ``i`` (a float, in [0, n − 2]) and the offset ``t`` in it of coordinate x,
+    clamped to the axis."""
+    u = (jnp.clip(x, lo, lo + step * (n - 1)) - lo) / step
+    i = jnp.clip(jnp.floor(u), 0, n - 2)
+    return i, u - i
+
+
 def _weights(x, lo: float, step: float, n: int, order: int = 3):
     """Index of the first coefficient and the ``order + 1`` weights at coordinate x.
 
     Order 3: the 4 cubic B-spline weights; order 1: the 2 linear (hat-function) weights.
     """
-    u = (jnp.clip(x, lo, lo + step * (n - 1)) - lo) / step
-    i = jnp.clip(jnp.floor(u), 0, n - 2)
-    t = u - i
+    i, t = _position(x, lo, step, n)
     if order == 1:
         return i.astype(jnp.int32), jnp.stack([1.0 - t, t], axis=-1)
     t2, t3 = t * t, t * t * t
@@ -197,22 +203,23 @@ class Spline(eqx.Module):
             block = jnp.tensordot(w.astype(dt), block, axes=(0, 0))
         return Spline(block, self.lo[m:], self.step[m:], self.n[m:], self.order)
 
-    def slope_and_tangents(self, x, *others):
-        """A 1-D spline (no components) at ``x``: its derivative along ``x`` and the same
-        B-spline weights applied to each array of ``others`` (coefficients of this spline's
-        shape, e.g. their derivatives along a parameter the spline was sliced at).
+    def value_slope_and_tangents(self, x, *others):
+        """A 1-D spline (no components) at ``x``: its value (the same as a call), its derivative
+        along ``x``, and the same B-spline weights applied to each array of ``others``
+        (coefficients of this spline's shape, e.g. their derivatives along a parameter the
+        spline was sliced at).
 
         For forward rules written by hand (:func:`twoscale.shadowing.lambda_partials`): one set
-        of indices and weights serves the slope and every tangent. ``x`` outside the axis is
-        clamped as in a call, where the slope is 0.
+        of indices, weights and gathered coefficients serves the value, the slope and every
+        tangent. ``x`` outside the axis is clamped as in a call, where the slope is 0.
         """
         if self.ndim != 1 or self.coeffs.ndim != 1 or self.order != 3:
-            raise ValueError("slope_and_tangents needs a 1-D cubic spline without components")
+            raise ValueError("value_slope_and_tangents needs a 1-D cubic spline without components")
         dt = self.dtype
         x = jnp.asarray(x, dt)
         lo, st, n = self.lo[0], self.step[0], self.n[0]
         i, w = _weights(x, lo, st, n, self.order)
-        t = (jnp.clip(x, lo, lo + st * (n - 1)) - lo) / st - i
+        _, t = _position(x, lo, st, n)
         inside = (x > lo) & (x < lo + st * (n - 1))
         # d/dt of the four cubic B-spline weights of _weights, over the step.
         dw = (
@@ -221,11 +228,12 @@ class Spline(eqx.Module):
             (-1.5 * t + 1.0) * t + 0.5,
             0.5 * t * t,
         )
-        c = self.coeffs.astype(dt)
-        slope = sum(dw[k] * c[i + k] for k in range(4))
-        slope = jnp.where(inside, slope / st, 0.0)
+        taps = [self.coeffs[i + k].astype(dt) for k in range(4)]
+        # Summed from zero in the order of __call__: the same value to the last bit.
+        value = sum((w[..., k] * taps[k] for k in range(4)), jnp.zeros(x.shape, dt))
+        slope = jnp.where(inside, sum(dw[k] * taps[k] for k in range(4)) / st, 0.0)
         tangents = [sum(w[..., k] * o.astype(dt)[i + k] for k in range(4)) for o in others]
-        return slope, tangents
+        return value, slope, tangents
 
     def call_shared_first(self, x0, x1):
         """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
