@@ -663,6 +663,83 @@ def test_few_starts_let_a_measured_body_decide_the_type(tmp_path):
     assert back.type_selection == json.loads(json.dumps(ts))
 
 
+def test_type_from_highlight_rules():
+    """:func:`type_from_highlight` (a preview's type for data without a body): a highlight
+    brighter than a dielectric interface reflects through the fall-off is a conductor's when
+    its RMS is within ``EVIDENCE_RTOL`` of the plastic's; a dimmer highlight, a floor beyond
+    ``FAINT_SHARE`` of the light, or no albedo decide nothing (the full fits do)."""
+    from twoscale.fit.material_type import (
+        EVIDENCE_RTOL,
+        FAINT_SHARE,
+        body_share,
+        dielectric_albedo_bound,
+        type_from_highlight,
+    )
+    from twoscale.fit.starts import DataStats
+
+    bound = dielectric_albedo_bound((1.0, 3.0))
+    assert 0.0 < bound < dielectric_albedo_bound(None)
+    floor = np.full(3, 1e-4)
+
+    def stats(highlight, floor=floor):
+        body, *_ = body_share(floor, np.ones(3))
+        return DataStats(np.ones(3), floor, 0.1, np.full(3, highlight + body))
+
+    rms = {"conductor": 0.10, "plastic": 0.10}
+    kind, reason = type_from_highlight(stats(1.5 * bound), rms, (1.0, 3.0))
+    assert kind == "conductor" and "more than a dielectric" in reason, reason
+    assert type_from_highlight(stats(0.5 * bound), rms, (1.0, 3.0)) is None
+    # The same highlight against the bound without a fall-off (larger): not decided.
+    assert type_from_highlight(stats(1.5 * bound), rms, None) is None
+    # The plastic's RMS lower by more than EVIDENCE_RTOL: not decided here.
+    worse = {"conductor": 0.10 * (1 + 1.5 * EVIDENCE_RTOL), "plastic": 0.10}
+    assert type_from_highlight(stats(1.5 * bound), worse, (1.0, 3.0)) is None
+    near = {"conductor": 0.10 * (1 + 0.5 * EVIDENCE_RTOL), "plastic": 0.10}
+    assert type_from_highlight(stats(1.5 * bound), near, (1.0, 3.0))[0] == "conductor"
+    # A floor carrying more than a bare metal's faint scatter, no albedo, one type: None.
+    s = stats(1.5 * bound)
+    body, albedo, _ = body_share(floor, s.albedo)
+    heavy = dataclasses.replace(s, floor=floor * (1.5 * FAINT_SHARE * albedo / body))
+    assert body_share(heavy.floor, heavy.albedo)[2] > FAINT_SHARE
+    assert type_from_highlight(heavy, rms, (1.0, 3.0)) is None
+    assert type_from_highlight(dataclasses.replace(s, albedo=None), rms, (1.0, 3.0)) is None
+    assert type_from_highlight(s, {"conductor": 0.1}, (1.0, 3.0)) is None
+
+
+def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
+    """``starts="few"`` (``--preview``) on a bare metal's data (no floor): the special cases'
+    highlight decides the conductor, whose full model alone is fitted, with its Lambertian
+    floor from the first stage (no conversion before a last stage); the record says so."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit import merl_protocol
+
+    metal = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+    cfg = ModelConfig(diffraction=False, apparatus=True, material="conductor")
+    bare = synthetic(metal, cfg, noise=0.01, seed=6)
+    stages = [Stage(2048, 1, 15), Stage(4096, 1, 8)]
+    logs = []
+    res = fit(
+        bare,
+        config=merl_protocol(apparatus_knee=False),
+        material="auto",
+        schedule=stages,
+        starts="few",
+        progress=logs.append,
+    )
+    ts = res.type_selection
+    assert ts["from_data"] and ts["chosen"] == "conductor" and ts["stage"] == 0, ts
+    assert set(ts["rms"]) == {"conductor", "plastic"}, ts
+    assert "the plastic's full model not fitted" in ts["reason"]
+    assert res.material == "conductor" and res.config["conductor_floor"], res.config
+    assert res.params.rho_d is not None and np.all(np.asarray(res.params.rho_d) > 0)
+    full = [e["start"] for st in res.stages for e in st["starts"]]
+    assert full and all(label.startswith("conductor") for label in full), full
+    assert not any("floor added" in line for line in logs), logs
+    assert "type conductor: no diffuse body" in res.summary()
+    back = load_result(res.save(tmp_path / "params.json"))
+    assert back.type_selection == json.loads(json.dumps(ts))
+
+
 def test_no_progress_raises(ct_noisy, monkeypatch):
     """Every solver step rejected from every start: a FitError (the CLI's exit 3), not a result."""
     import twoscale.fit.driver as driver

@@ -88,10 +88,10 @@ def test_schlick_replaces_the_coat_reflectance_only(diffuse_fresnel):
 
 
 def test_fresnel_twins_share_one_compiled_function():
-    """A run-time selector (``schlick=``) gives each static form's values and gradients, on the
-    per-pair and the fit's per-bin paths (diffuse layer through the varnish included); the fit's
-    adapters carry the form as an array, so the exact and Schlick twins' problems are traced
-    once, and each reports its own form."""
+    """A run-time selector (``schlick=``) gives each static form's values, on the per-pair and
+    the fit's per-bin paths (diffuse layer through the varnish included; the gradients: the
+    slow test below); the fit's adapters carry the form as an array, so the exact and Schlick
+    twins' problems are traced once, and each reports its own form."""
     from twoscale.fit.adapters import adapter_for, compile_key
     from twoscale.fit.residuals import Problem
     from twoscale.model import brdf_from_factors, half_diff_factors, merl_grid
@@ -110,11 +110,6 @@ def test_fresnel_twins_share_one_compiled_function():
         np.testing.assert_array_equal(
             twoscale.brdf(PARAMS, WI, WO, ex, schlick=sel), twoscale.brdf(PARAMS, WI, WO, static)
         )
-        g_sel = jax.grad(lambda p, s=sel: twoscale.brdf(p, WI, WO, ex, schlick=s).sum())(PARAMS)
-        g_static = jax.grad(lambda p, c=static: twoscale.brdf(p, WI, WO, c).sum())(PARAMS)
-        leaves = zip(*map(jax.tree_util.tree_leaves, (g_sel, g_static)), strict=True)
-        for a, b in leaves:
-            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
         np.testing.assert_array_equal(cells(ex, sel), cells(static, None))
     with pytest.raises(ValueError, match="dielectric coat"):
         twoscale.brdf(PARAMS, WI, WO, dataclasses.replace(ex, fresnel="schlick"), schlick=True)
@@ -142,6 +137,21 @@ def test_fresnel_twins_share_one_compiled_function():
     assert len(traces) == 1
     np.testing.assert_array_equal(out[0], twoscale.brdf(PARAMS, WI, WO, EXACT))
     np.testing.assert_array_equal(out[1], twoscale.brdf(PARAMS, WI, WO, SCHLICK))
+
+
+@pytest.mark.slow
+def test_fresnel_selector_gradients_equal_the_static_forms():
+    """Slow set: the selector's gradients equal each static form's (the fit differentiates
+    through the selector; its values are checked by the test above, its forward-mode derivatives by every fit
+    of a dielectric in tests/test_fit.py and tests/test_schlick.py)."""
+    ex = dataclasses.replace(EXACT, diffuse_fresnel=True)
+    for static, flag in ((ex, False), (dataclasses.replace(ex, fresnel="schlick"), True)):
+        sel = np.asarray(flag)
+        g_sel = jax.grad(lambda p, s=sel: twoscale.brdf(p, WI, WO, ex, schlick=s).sum())(PARAMS)
+        g_static = jax.grad(lambda p, c=static: twoscale.brdf(p, WI, WO, c).sum())(PARAMS)
+        leaves = zip(*map(jax.tree_util.tree_leaves, (g_sel, g_static)), strict=True)
+        for a, b in leaves:
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-300)
 
 
 @pytest.mark.slow
@@ -224,7 +234,7 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner, starts):
         def submit_call(self, key, fn):
             pass
 
-    configs, groups, cands, selection = driver._make_starts(
+    configs, groups, cands, selection, decided = driver._make_starts(
         prep, resolve_configs(None, "plastic"), settings, lambda msg: None, Warm()
     )
     # The full model's solve is queued once, at once, before the special cases say which form
@@ -244,6 +254,7 @@ def test_fresnel_auto_branches_on_the_special_case(monkeypatch, winner, starts):
     else:
         assert forms == ["exact", "schlick"]
     assert all(c.diffraction and c.material == "plastic" for c in configs)
+    assert decided is None  # one material type: nothing for the highlight to decide
     nested = [groups[c.group].adapter.config.fresnel for c in cands if "nested" in c.label]
     assert sorted(nested) == sorted(forms), [c.label for c in cands]
 

@@ -38,13 +38,17 @@ from twoscale.fit.evaluation import (
     warm_evaluation,
 )
 from twoscale.fit.material_type import (
+    FAINT_SHARE,
     body_levels,
+    body_share,
     choose_fresnel,
     choose_type,
+    fall_off_of,
     fresnel_choice_applies,
     resolve_configs,
     resolve_fresnel,
     type_from_body,
+    type_from_highlight,
 )
 from twoscale.fit.record import FitResult, package_versions
 from twoscale.fit.residuals import DEFAULT_METRIC, Problem, check_metric, residuals_per_cell
@@ -441,9 +445,19 @@ class FitSettings:
         }
 
 
-def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None):
+def _faint_floor(stats) -> bool:
+    """Whether the data's floor carries at most the faint scatter under a bare metal's highlight
+    (:data:`~twoscale.fit.material_type.FAINT_SHARE` of its albedo): where
+    :func:`~twoscale.fit.material_type.type_from_highlight` can decide a preview's type."""
+    if stats.albedo is None:
+        return False
+    _body, albedo, share = body_share(stats.floor, stats.albedo)
+    return albedo > 0.0 and share <= FAINT_SHARE
+
+
+def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None, floors=None):
     """Phase 2: the groups and candidates of every configuration; returns
-    ``(configs, groups, candidates, fresnel_selection)``.
+    ``(configs, groups, candidates, fresnel_selection, type_selection)``.
 
     Default starts are placed from the data; with ``nested`` and the diffraction lobe on, the
     full model starts from a fit of its diffraction-off special case (same settings, the
@@ -455,13 +469,27 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     :func:`_run_schedule` keeps one by the full model's RMS; otherwise the exact form alone goes
     on. ``fresnel_selection``: ``{material: {"special_case": ..., "chosen", "reason"}}`` (the
     full model's comparison is added after the schedule), ``None`` when nothing was compared.
+
+    With ``starts="few"`` (``--preview``), both types to choose from and a data floor no more
+    than a bare metal's faint scatter, the special cases' fits decide the type by the highlight
+    (:func:`~twoscale.fit.material_type.type_from_highlight`) where they can: only that type's
+    full model is fitted, a conductor with its floor (``floors``: :func:`_split_floors`) from
+    the first stage; ``type_selection`` records it (else ``None``: the schedule chooses).
     """
     configs = list(configs)
     if not isinstance(settings.starts, str):
         start_lists = [[(f"start {i}", s) for i, s in enumerate(settings.starts)]]
-        return configs, *make_candidates(configs, start_lists, settings.fixed), None
+        return configs, *make_candidates(configs, start_lists, settings.fixed), None, None
     selection = None
+    type_record = None
     few = settings.starts == "few"
+    floors = floors or {}
+    # A bodiless material's preview: the type may be decided by the special cases' highlight.
+    by_highlight = (
+        few
+        and _faint_floor(prep.stats)
+        and {"conductor", "plastic"} <= {getattr(c, "material", None) for c in configs}
+    )
 
     def data_starts(cfg):
         out = adapter_for(cfg).starts(prep.stats)
@@ -481,10 +509,10 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             spec_cfgs, [data_starts(c) for c in spec_cfgs], sub_fixed
         )
 
-        def warm_full(indices, grids: bool = False):
+        def warm_full(cfgs, grids: bool = False):
             """Queue the full models' solves (or, with ``grids``, their evaluation on the MERL
             grid, which the type choice and the record use)."""
-            full = [(configs[gi], adapter_for(configs[gi]).starts(prep.stats)) for gi in indices]
+            full = [(cfg, adapter_for(cfg).starts(prep.stats)) for cfg in cfgs]
             full = [(cfg, sl[:1]) for cfg, sl in full if sl]
             if not full:
                 return
@@ -508,7 +536,12 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             # special cases fit. A Schlick twin queues nothing new (the key of its exact twin).
             for c in sub_cands:
                 warm.submit(sub_groups[c.group], c.y)
-            warm_full(range(len(configs)))
+            if by_highlight:
+                # The likely outcome: a conductor fitted with its floor; the other full models
+                # are queued only if the special cases do not decide (below).
+                warm_full([floors.get(c, c) for c in configs if c.material == "conductor"])
+            else:
+                warm_full(configs)
         # The screening stages: every stage but the last, where a single candidate of the
         # chosen type is refined (the full model refines its own solution there).
         sub_stages = settings.stages[:-1]
@@ -555,13 +588,24 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
+        if by_highlight and all(source[gi] in best for gi in range(len(configs))):
+            configs, start_lists, source, type_record = _type_by_highlight(
+                prep, configs, start_lists, source, sub_groups, best, sub_stages, settings, floors
+            )
+            if type_record is not None:
+                say(f"material: {type_record['chosen']} ({type_record['reason']})")
         if warm is not None:
-            warm_full(range(len(configs)), grids=True)
+            if by_highlight and type_record is None:
+                warm_full(configs)
+            warm_full(configs, grids=True)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
                 continue
             g = sub_groups[source[gi]]
             p = Problem(g.adapter, g.layout, settings.metric).params(best[source[gi]].y, g.frozen)
+            if type_record is not None and cfg.material == "conductor" and cfg.has_diffuse:
+                # Its floor from the first stage; the special case had none.
+                p = p.replace(rho_d=floor_albedo_start(prep.stats))
             grid = FEW_NESTED_GRID if few else NESTED_GRID
             start_lists[gi] = nested_starts(p, cfg, settings.fixed, grid)
         say(f"special-case fits done ({time.perf_counter() - ts:.1f} s)")
@@ -574,7 +618,50 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             for c in configs
             if fresnel_choice_applies(c) and c.diffraction
         } or None
-    return configs, *make_candidates(configs, start_lists, settings.fixed), selection
+    return configs, *make_candidates(configs, start_lists, settings.fixed), selection, type_record
+
+
+def _type_by_highlight(
+    prep, configs, start_lists, source, sub_groups, best, stages, settings, floors
+):
+    """:func:`_make_starts`' preview decision for a bodiless material: the types' special cases
+    (``best``: special-case group -> its best candidate; ``source``: each configuration's
+    special-case group) compared by :func:`~twoscale.fit.material_type.type_from_highlight`.
+    Returns ``(configs, start_lists, source, type_selection)``, the configurations of the
+    winning type alone (a conductor with its floor), or the arguments and ``None``."""
+    n_active, n_cells = prep.stage_cells((stages or settings.stages[:1])[-1])
+    opts = settings.solver_settings
+    rms, params = {}, {}
+    for gi, cfg in enumerate(configs):
+        g, c = sub_groups[source[gi]], best[source[gi]]
+        r = _type_rms(c, g, opts, prep.buffer, n_active, n_cells)
+        if r < rms.get(cfg.material, math.inf):
+            rms[cfg.material] = r
+            params[cfg.material] = (
+                Problem(g.adapter, g.layout, opts.metric).params(c.y, g.frozen),
+                g.adapter.config,
+            )
+    fall_off = fall_off_of(*params["plastic"]) if "plastic" in params else None
+    decided = type_from_highlight(prep.stats, rms, fall_off)
+    if decided is None:
+        return configs, start_lists, source, None
+    winner, reason = decided
+    keep = [gi for gi, cfg in enumerate(configs) if cfg.material == winner]
+    record = {
+        "rms": rms,
+        "metric": TYPE_METRIC.get(opts.metric, opts.metric),
+        "chosen": winner,
+        "reason": reason,
+        "stage": 0,
+        "from_data": True,
+        "params": {k: v[0].to_dict() for k, v in params.items()},
+    }
+    return (
+        [floors.get(configs[gi], configs[gi]) for gi in keep],
+        [start_lists[gi] for gi in keep],
+        [source[gi] for gi in keep],
+        record,
+    )
 
 
 def _record(data, prep: _Prepared, groups, cands, stage_log, selections, settings, t0, say):
@@ -763,7 +850,10 @@ def fit(
     # of its first use (solver.Warmup).
     warm = _solver.Warmup(prep.buffer, settings.solver_settings)
     try:
-        configs, groups, cands, fresnel_selection = _make_starts(prep, configs, settings, say, warm)
+        configs, groups, cands, fresnel_selection, decided = _make_starts(
+            prep, configs, settings, say, warm, floors
+        )
+        preselection = preselection or decided
         say(f"{len(cands)} starts")
         # Phases 3 and 4: every stage, and the material type after the second-last one.
         floor = _floor_converter(floors, prep, settings, say, warm) if floors else None

@@ -347,16 +347,57 @@ def type_from_body(stats) -> tuple[str, str] | None:
     )
 
 
+def fall_off_of(params, config) -> tuple[float, float] | None:
+    """``(e, m)`` of a fit's apparatus fall-off ``L(θ) = [1 − (2θ/π)^m]^e`` (m = 2 without the
+    fitted knee), or ``None`` when its configuration has no apparatus factor."""
+    if not config.apparatus:
+        return None
+    m = params.m if config.apparatus_knee else PAPER_KNEE
+    return float(np.max(params.e)), float(np.max(m))
+
+
+def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
+    """``("conductor", reason)`` where :func:`choose_type`'s highlight rule gives a material
+    without a diffuse body to the conductor by fits of the diffraction-off special case, else
+    ``None``: what ``starts="few"`` (``--preview``) decides before fitting the full model of
+    one type only.
+
+    It applies where the data's floor carries at most the faint scatter under a bare metal's
+    highlight (:data:`FAINT_SHARE` of the measured albedo; there :func:`choose_type` does not
+    ask whether the conductor's fit makes the floor): the highlight's albedo (the data's less
+    the body's) brighter than a smooth dielectric interface of index :data:`ETA_COAT_MAX`
+    reflects through ``fall_off`` (the plastic special case's, :func:`fall_off_of`), and the
+    conductor's RMS ``rms["conductor"]`` (type metric) at most :data:`EVIDENCE_RTOL` above the
+    plastic's. Only the conductor is decided so: the special cases' fall-off starts later than
+    the full model's (a larger bound: chrome's 0.079 against 0.022, hematite's 0.062 against
+    0.021 on 2026-12-06), so a highlight above it is above the full fit's too, while a dimmer
+    one may still be a metal's (hematite's 0.043): the full fits decide those.
+    """
+    if stats.albedo is None or {"conductor", "plastic"} - set(rms):
+        return None
+    body, albedo, share = body_share(stats.floor, stats.albedo)
+    if not (albedo > 0.0 and share <= FAINT_SHARE):
+        return None
+    highlight = albedo - body
+    bound = dielectric_albedo_bound(fall_off)
+    if highlight <= bound or not rms["conductor"] <= (1.0 + EVIDENCE_RTOL) * rms["plastic"]:
+        return None
+    return "conductor", (
+        f"no diffuse body ({share:.0%} of the light); the highlight's albedo {highlight:.3g} is "
+        f"more than a dielectric interface reflects (η ≤ {ETA_COAT_MAX}: {bound:.3g}); the "
+        f"diffraction-off fits' RMS within {EVIDENCE_RTOL:.0%} (starts='few': the plastic's "
+        "full model not fitted)"
+    )
+
+
 def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model
     on the MERL grid; ``groups``: ``{type: its group}``), the data's bihemispherical albedo, and
     the plastic fit's apparatus fall-off ``(e, m)`` (None without the factor or a plastic fit)."""
     out = {"measured": prep.stats.floor, "albedo": prep.stats.albedo, "fall_off": None}
-    if "plastic" in best and groups["plastic"].adapter.config.apparatus:
-        params, knee = best["plastic"][1], groups["plastic"].adapter.config.apparatus_knee
-        m = params.m if knee else PAPER_KNEE
-        out["fall_off"] = (float(np.max(params.e)), float(np.max(m)))
+    if "plastic" in best:
+        out["fall_off"] = fall_off_of(best["plastic"][1], groups["plastic"].adapter.config)
     for mat, (_rms, params) in best.items():
         grid = np.asarray(groups[mat].adapter.evaluate_grid(params, "lower"))
         out[mat] = floor_level(grid, prep.valid_grid)

@@ -113,8 +113,10 @@ class FitResult:
         type_selection: how the material type was chosen (``material="auto"``): each type's RMS
             (``"rms"``) and best parameters on that stage (``"params"``, ``to_dict()`` form: the
             type not chosen can be read back with ``TwoScaleParams.from_dict``), the winner and
-            why; with ``"from_data": True`` (``starts="few"``) the data's diffuse body decided it
-            and the other type was not fitted (``"rms"`` empty, ``"stage"`` 0).
+            why; with ``"from_data": True`` (``starts="few"``) the type was decided before the
+            full models' stages (``"stage"`` 0) and the other type's full model was not fitted:
+            by the data's diffuse body (``"rms"`` empty), or for a bodiless material by the
+            diffraction-off special cases' highlight (their RMS and parameters).
         fresnel_selection: how a dielectric coat's Fresnel form was chosen (``fresnel="auto"``):
             the diffraction-off fits' RMS with the exact and with Schlick's form, the winner and
             why (None when not chosen).
