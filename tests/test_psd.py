@@ -22,6 +22,10 @@ from twoscale.psd import (
 )
 from twoscale.tables import load_table
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation
+#: (measured alone on the 2-core machine, 2026-12-06: 14.6 → 10.3 s).
+COMPILE_QUICKLY = True
+
 PATHS = ("exact", "tables")
 
 # docs/model.md §3.5 check values (s, B, c) → R, given to 6 decimals.

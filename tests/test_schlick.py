@@ -20,6 +20,10 @@ from twoscale.fit.material_type import (
     resolve_fresnel,
 )
 
+#: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation
+#: (measured alone on the 2-core machine, 2026-12-06: fast set 23.4 → 18.4 s).
+COMPILE_QUICKLY = True
+
 EXACT = ModelConfig(material="plastic", diffuse_fresnel=False)
 SCHLICK = dataclasses.replace(EXACT, fresnel="schlick")
 PARAMS = TwoScaleParams.plastic(
