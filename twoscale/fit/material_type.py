@@ -368,10 +368,11 @@ def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     the body's) brighter than a smooth dielectric interface of index :data:`ETA_COAT_MAX`
     reflects through ``fall_off`` (the plastic special case's, :func:`fall_off_of`), and the
     conductor's RMS ``rms["conductor"]`` (type metric) at most :data:`EVIDENCE_RTOL` above the
-    plastic's. Only the conductor is decided so: the special cases' fall-off starts later than
-    the full model's (a larger bound: chrome's 0.079 against 0.022, hematite's 0.062 against
-    0.021 on 2026-12-06), so a highlight above it is above the full fit's too, while a dimmer
-    one may still be a metal's (hematite's 0.043): the full fits decide those.
+    plastic's. Only the conductor is decided so: on the bodiless stand-ins measured
+    (2026-12-06) the special cases' fall-off started later than the full model's, a larger
+    bound (chrome's 0.079 against 0.022, hematite's 0.062 against 0.021), so a highlight above
+    it was above the full fit's too, while a dimmer one may still be a metal's (hematite's
+    0.043): the full fits decide those.
     """
     if stats.albedo is None or {"conductor", "plastic"} - set(rms):
         return None
