@@ -374,9 +374,8 @@ def lambda_partials(cos_theta, beta, p):
     """
     dtype = float_dtype(cos_theta, beta, p, default=float)
     p = jnp.asarray(p, dtype)
-    # The slice itself as the value's (bit-equal), its derivative along p from a JVP (per call).
-    sl = smith_lambda_spline(p, dtype)
-    _, dsl = jax.jvp(lambda q: smith_lambda_spline(q, dtype), (p,), (jnp.ones_like(p),))
+    # The slice (the value's, bit-equal) and its derivative along p from one JVP (per call).
+    sl, dsl = jax.jvp(lambda q: smith_lambda_spline(q, dtype), (p,), (jnp.ones_like(p),))
     b = jnp.asarray(beta, dtype)
     # a², log a and the lookup's quantities once, for the value (as of_cos) and the partials;
     # ∂ log a/∂ log β = 1 between the floors of a².

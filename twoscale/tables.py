@@ -136,8 +136,13 @@ def _weights(x, lo: float, step: float, n: int, order: int = 3):
     i, t = _position(x, lo, step, n)
     if order == 1:
         return i.astype(jnp.int32), jnp.stack([1.0 - t, t], axis=-1)
+    return i.astype(jnp.int32), _cubic_weights(t)
+
+
+def _cubic_weights(t):
+    """The 4 cubic B-spline weights at offset ``t`` in a cell, stacked on a last axis."""
     t2, t3 = t * t, t * t * t
-    w = jnp.stack(
+    return jnp.stack(
         [
             (1.0 - t) ** 3 / 6.0,
             (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
@@ -146,7 +151,6 @@ def _weights(x, lo: float, step: float, n: int, order: int = 3):
         ],
         axis=-1,
     )
-    return i.astype(jnp.int32), w
 
 
 class Spline(eqx.Module):
@@ -218,8 +222,8 @@ class Spline(eqx.Module):
         dt = self.dtype
         x = jnp.asarray(x, dt)
         lo, st, n = self.lo[0], self.step[0], self.n[0]
-        i, w = _weights(x, lo, st, n, self.order)
-        _, t = _position(x, lo, st, n)
+        i, t = _position(x, lo, st, n)
+        i, w = i.astype(jnp.int32), _cubic_weights(t)
         inside = (x > lo) & (x < lo + st * (n - 1))
         # d/dt of the four cubic B-spline weights of _weights, over the step.
         dw = (

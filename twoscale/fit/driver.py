@@ -38,11 +38,10 @@ from twoscale.fit.evaluation import (
     warm_evaluation,
 )
 from twoscale.fit.material_type import (
-    FAINT_SHARE,
     body_levels,
-    body_share,
     choose_fresnel,
     choose_type,
+    faint_floor,
     fall_off_of,
     fresnel_choice_applies,
     resolve_configs,
@@ -445,16 +444,6 @@ class FitSettings:
         }
 
 
-def _faint_floor(stats) -> bool:
-    """Whether the data's floor carries at most the faint scatter under a bare metal's highlight
-    (:data:`~twoscale.fit.material_type.FAINT_SHARE` of its albedo): where
-    :func:`~twoscale.fit.material_type.type_from_highlight` can decide a preview's type."""
-    if stats.albedo is None:
-        return False
-    _body, albedo, share = body_share(stats.floor, stats.albedo)
-    return albedo > 0.0 and share <= FAINT_SHARE
-
-
 def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None, floors=None):
     """Phase 2: the groups and candidates of every configuration; returns
     ``(configs, groups, candidates, fresnel_selection, type_selection)``.
@@ -487,7 +476,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     # A bodiless material's preview: the type may be decided by the special cases' highlight.
     by_highlight = (
         few
-        and _faint_floor(prep.stats)
+        and faint_floor(prep.stats)
         and {"conductor", "plastic"} <= {getattr(c, "material", None) for c in configs}
     )
 

@@ -356,6 +356,15 @@ def fall_off_of(params, config) -> tuple[float, float] | None:
     return float(np.max(params.e)), float(np.max(m))
 
 
+def faint_floor(stats) -> bool:
+    """Whether the data's floor carries at most the faint scatter under a bare metal's highlight
+    (:data:`FAINT_SHARE` of its measured albedo): where :func:`type_from_highlight` applies."""
+    if stats.albedo is None:
+        return False
+    _body, albedo, share = body_share(stats.floor, stats.albedo)
+    return albedo > 0.0 and share <= FAINT_SHARE
+
+
 def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     """``("conductor", reason)`` where :func:`choose_type`'s highlight rule gives a material
     without a diffuse body to the conductor by fits of the diffraction-off special case, else
@@ -374,11 +383,9 @@ def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     it was above the full fit's too, while a dimmer one may still be a metal's (hematite's
     0.043): the full fits decide those.
     """
-    if stats.albedo is None or {"conductor", "plastic"} - set(rms):
+    if not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
         return None
     body, albedo, share = body_share(stats.floor, stats.albedo)
-    if not (albedo > 0.0 and share <= FAINT_SHARE):
-        return None
     highlight = albedo - body
     bound = dielectric_albedo_bound(fall_off)
     if highlight <= bound or not rms["conductor"] <= (1.0 + EVIDENCE_RTOL) * rms["plastic"]:
