@@ -706,6 +706,46 @@ def test_type_from_highlight_rules():
     assert type_from_highlight(s, {"conductor": 0.1}, (1.0, 3.0)) is None
 
 
+def test_preview_type_falls_back_on_the_lower_rms():
+    """:func:`preview_type`: where the highlight does not decide a bodiless material's type, the
+    special case with the lower RMS does (the plastic on a tie); a conductor the highlight
+    decides stays one; a floor beyond ``FAINT_SHARE``, no albedo or one type decide nothing."""
+    from twoscale.fit.material_type import (
+        FAINT_SHARE,
+        body_share,
+        dielectric_albedo_bound,
+        preview_type,
+        type_from_highlight,
+    )
+    from twoscale.fit.starts import DataStats
+
+    bound = dielectric_albedo_bound((1.0, 3.0))
+    floor = np.full(3, 1e-4)
+    body, *_ = body_share(floor, np.ones(3))
+    dim = DataStats(np.ones(3), floor, 0.1, np.full(3, 0.5 * bound + body))
+    bright = dataclasses.replace(dim, albedo=np.full(3, 1.5 * bound + body))
+    for rms, want in (
+        ({"conductor": 0.12, "plastic": 0.10}, "plastic"),
+        ({"conductor": 0.10, "plastic": 0.12}, "conductor"),
+        ({"conductor": 0.10, "plastic": 0.10}, "plastic"),
+    ):
+        assert type_from_highlight(dim, rms, (1.0, 3.0)) is None
+        kind, reason = preview_type(dim, rms, (1.0, 3.0))
+        assert kind == want and "lower RMS" in reason, (rms, kind, reason)
+        assert "full model not fitted" in reason
+    # The highlight's rule first: a bright highlight within EVIDENCE_RTOL is the conductor's.
+    near = {"conductor": 0.105, "plastic": 0.10}
+    assert preview_type(bright, near, (1.0, 3.0)) == type_from_highlight(bright, near, (1.0, 3.0))
+    assert preview_type(bright, near, (1.0, 3.0))[0] == "conductor"
+    # Nothing decided where the rule does not apply.
+    rms = {"conductor": 0.12, "plastic": 0.10}
+    _b, albedo, _ = body_share(floor, dim.albedo)
+    heavy = dataclasses.replace(dim, floor=floor * (1.5 * FAINT_SHARE * albedo / body))
+    assert preview_type(heavy, rms, (1.0, 3.0)) is None
+    assert preview_type(dataclasses.replace(dim, albedo=None), rms, (1.0, 3.0)) is None
+    assert preview_type(dim, {"plastic": 0.1}, (1.0, 3.0)) is None
+
+
 def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
     """``starts="few"`` (``--preview``) on a bare metal's data (no floor): the special cases'
     highlight decides the conductor, whose full model alone is fitted, with its Lambertian

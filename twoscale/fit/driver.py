@@ -44,10 +44,10 @@ from twoscale.fit.material_type import (
     faint_floor,
     fall_off_of,
     fresnel_choice_applies,
+    preview_type,
     resolve_configs,
     resolve_fresnel,
     type_from_body,
-    type_from_highlight,
 )
 from twoscale.fit.record import FitResult, package_versions
 from twoscale.fit.residuals import DEFAULT_METRIC, Problem, check_metric, residuals_per_cell
@@ -460,10 +460,11 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     full model's comparison is added after the schedule), ``None`` when nothing was compared.
 
     With ``starts="few"`` (``--preview``), both types to choose from and a data floor no more
-    than a bare metal's faint scatter, the special cases' fits decide the type by the highlight
-    (:func:`~twoscale.fit.material_type.type_from_highlight`) where they can: only that type's
-    full model is fitted, a conductor with its floor (``floors``: :func:`_split_floors`) from
-    the first stage; ``type_selection`` records it (else ``None``: the schedule chooses).
+    than a bare metal's faint scatter, the special cases' fits decide the type
+    (:func:`~twoscale.fit.material_type.preview_type`: the conductor by the highlight, else the
+    lower RMS): only that type's full model is fitted, a conductor with its floor (``floors``:
+    :func:`_split_floors`) from the first stage; ``type_selection`` records it (``None`` where
+    nothing was decided: the schedule chooses).
     """
     configs = list(configs)
     if not isinstance(settings.starts, str):
@@ -615,7 +616,7 @@ def _type_by_highlight(
 ):
     """:func:`_make_starts`' preview decision for a bodiless material: the types' special cases
     (``best``: special-case group -> its best candidate; ``source``: each configuration's
-    special-case group) compared by :func:`~twoscale.fit.material_type.type_from_highlight`.
+    special-case group) compared by :func:`~twoscale.fit.material_type.preview_type`.
     Returns ``(configs, start_lists, source, type_selection)``, the configurations of the
     winning type alone (a conductor with its floor), or the arguments and ``None``."""
     n_active, n_cells = prep.stage_cells((stages or settings.stages[:1])[-1])
@@ -631,7 +632,7 @@ def _type_by_highlight(
                 g.adapter.config,
             )
     fall_off = fall_off_of(*params["plastic"]) if "plastic" in params else None
-    decided = type_from_highlight(prep.stats, rms, fall_off)
+    decided = preview_type(prep.stats, rms, fall_off)
     if decided is None:
         return configs, start_lists, source, None
     winner, reason = decided

@@ -398,6 +398,33 @@ def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     )
 
 
+def preview_type(stats, rms: dict, fall_off) -> tuple[str, str] | None:
+    """The material type ``starts="few"`` (``--preview``) fits alone for data without a diffuse
+    body (its floor at most :data:`FAINT_SHARE` of the light), from the fits of the
+    diffraction-off special cases (``rms``: ``{type: RMS}`` on the type metric): the conductor
+    where :func:`type_from_highlight` decides it, else the type whose special case fits with
+    the lower RMS (the plastic on a tie). ``None`` where the floor carries more (the data's body
+    decides those, :func:`type_from_body`), without the data's albedo, or without both types.
+
+    The fallback is a preview's shortcut, not :func:`choose_type`: the full fits' rules may
+    choose the other type, whose fit then differs by about the two types' difference in RMS
+    (measured on the bodiless stand-ins: the same type as the full fits on four of five;
+    hematite, whose type the issue leaves open, a plastic at log RMSE 0.1440 where both types'
+    full fits give a conductor at 0.1422).
+    """
+    decided = type_from_highlight(stats, rms, fall_off)
+    if decided is not None or not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
+        return decided
+    winner = "plastic" if rms["plastic"] <= rms["conductor"] else "conductor"
+    other = "conductor" if winner == "plastic" else "plastic"
+    _body, _albedo, share = body_share(stats.floor, stats.albedo)
+    return winner, (
+        f"no diffuse body ({share:.0%} of the light) and a highlight that does not decide; "
+        f"the diffraction-off fits' lower RMS ({rms[winner]:.4g} against the {other}'s "
+        f"{rms[other]:.4g}; starts='few': the {other}'s full model not fitted)"
+    )
+
+
 def body_levels(best: dict, groups: dict, prep) -> dict:
     """What :func:`choose_type` weighs a diffuse body with: the floor levels
     (:func:`~twoscale.fit.starts.floor_level`) of the data and of each type's best fit (the model
