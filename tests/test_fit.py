@@ -780,6 +780,35 @@ def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
     assert back.type_selection == json.loads(json.dumps(ts))
 
 
+@pytest.mark.slow
+def test_preview_of_a_bare_dielectric_fits_the_plastic_alone():
+    """``starts="few"`` on a dielectric interface without a body (ρ_d ≈ 0): its highlight is
+    a dielectric's, so the highlight rule decides nothing, and the special cases' lower RMS
+    gives the plastic, whose full model alone is fitted (the fast set checks the rule itself,
+    ``test_preview_type_falls_back_on_the_lower_rms``, and the driver's path with a bare
+    metal)."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit import merl_protocol
+
+    coat = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (1e-4, 1e-4, 1e-4), e=0.8)
+    cfg = ModelConfig(diffraction=False, apparatus=True, material="plastic", diffuse_fresnel=False)
+    bare = synthetic(coat, cfg, noise=0.01, seed=7)
+    res = fit(
+        bare,
+        config=merl_protocol(apparatus_knee=False),
+        material="auto",
+        schedule=[Stage(2048, 1, 15), Stage(4096, 1, 8)],
+        starts="few",
+    )
+    ts = res.type_selection
+    assert ts["from_data"] and ts["chosen"] == "plastic" and ts["stage"] == 0, ts
+    assert "lower RMS" in ts["reason"] and ts["rms"]["plastic"] <= ts["rms"]["conductor"], ts
+    assert res.material == "plastic"
+    full = [e["start"] for st in res.stages for e in st["starts"]]
+    assert full and all(label.startswith("plastic") for label in full), full
+    assert res.rmse_log < 0.05, res.rmse_log
+
+
 def test_no_progress_raises(ct_noisy, monkeypatch):
     """Every solver step rejected from every start: a FitError (the CLI's exit 3), not a result."""
     import twoscale.fit.driver as driver
