@@ -474,8 +474,8 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     type_record = None
     few = settings.starts == "few"
     floors = floors or {}
-    # A bodiless material's preview: the type may be decided by the special cases' highlight.
-    by_highlight = (
+    # A bodiless material's preview: the special cases' fits decide the type (preview_type).
+    bodiless_preview = (
         few
         and faint_floor(prep.stats)
         and {"conductor", "plastic"} <= {getattr(c, "material", None) for c in configs}
@@ -526,9 +526,11 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             # special cases fit. A Schlick twin queues nothing new (the key of its exact twin).
             for c in sub_cands:
                 warm.submit(sub_groups[c.group], c.y)
-            if by_highlight:
-                # The likely outcome: a conductor fitted with its floor; the other full models
-                # are queued only if the special cases do not decide (below).
+            if bodiless_preview:
+                # Only one type's full model is fitted, decided after the special cases: the
+                # conductor with its floor is compiled ahead (for nothing when the plastic wins;
+                # both or none ahead measured no faster), the plastic's solve when it is first
+                # called, and every full model if nothing was decided (below).
                 warm_full([floors.get(c, c) for c in configs if c.material == "conductor"])
             else:
                 warm_full(configs)
@@ -578,14 +580,14 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
-        if by_highlight and all(source[gi] in best for gi in range(len(configs))):
-            configs, start_lists, source, type_record = _type_by_highlight(
+        if bodiless_preview and all(source[gi] in best for gi in range(len(configs))):
+            configs, start_lists, source, type_record = _preview_decision(
                 prep, configs, start_lists, source, sub_groups, best, sub_stages, settings, floors
             )
             if type_record is not None:
                 say(f"material: {type_record['chosen']} ({type_record['reason']})")
         if warm is not None:
-            if by_highlight and type_record is None:
+            if bodiless_preview and type_record is None:
                 warm_full(configs)
             warm_full(configs, grids=True)
         for gi, cfg in enumerate(configs):
@@ -611,7 +613,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     return configs, *make_candidates(configs, start_lists, settings.fixed), selection, type_record
 
 
-def _type_by_highlight(
+def _preview_decision(
     prep, configs, start_lists, source, sub_groups, best, stages, settings, floors
 ):
     """:func:`_make_starts`' preview decision for a bodiless material: the types' special cases

@@ -381,7 +381,7 @@ def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     (2026-12-06) the special cases' fall-off started later than the full model's, a larger
     bound (chrome's 0.079 against 0.022, hematite's 0.062 against 0.021), so a highlight above
     it was above the full fit's too, while a dimmer one may still be a metal's (hematite's
-    0.043): the full fits decide those.
+    0.043): :func:`preview_type` then falls back on the special cases' RMS.
     """
     if not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
         return None
@@ -407,10 +407,9 @@ def preview_type(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     decides those, :func:`type_from_body`), without the data's albedo, or without both types.
 
     The fallback is a preview's shortcut, not :func:`choose_type`: the full fits' rules may
-    choose the other type, whose fit then differs by about the two types' difference in RMS
-    (measured on the bodiless stand-ins: the same type as the full fits on four of five;
-    hematite, whose type the issue leaves open, a plastic at log RMSE 0.1440 where both types'
-    full fits give a conductor at 0.1422).
+    choose the other type (measured on the five bodiless stand-ins the highlight leaves open:
+    the same type and fit as the full fits on four; hematite, which the campaign accepts as
+    either type, a plastic at log RMSE 0.1440 where the full fits choose a conductor at 0.1422).
     """
     decided = type_from_highlight(stats, rms, fall_off)
     if decided is not None or not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
