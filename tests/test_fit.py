@@ -663,6 +663,30 @@ def test_few_starts_let_a_measured_body_decide_the_type(tmp_path):
     assert back.type_selection == json.loads(json.dumps(ts))
 
 
+#: The floor of the bodiless data of the type-rule tests below (1/sr per channel).
+_FAINT = np.full(3, 1e-4)
+
+
+def _bodiless_stats(highlight):
+    """Data statistics with the faint floor :data:`_FAINT` and a highlight of albedo
+    ``highlight`` above it (the rules read the floor, the albedo and nothing else)."""
+    from twoscale.fit.material_type import body_share
+    from twoscale.fit.starts import DataStats
+
+    body, *_ = body_share(_FAINT, np.ones(3))
+    return DataStats(np.ones(3), _FAINT, 0.1, np.full(3, highlight + body))
+
+
+def _with_heavy_floor(stats):
+    """``stats`` with its floor raised to carry 1.5× ``FAINT_SHARE`` of the light."""
+    from twoscale.fit.material_type import FAINT_SHARE, body_share
+
+    body, albedo, _ = body_share(stats.floor, stats.albedo)
+    heavy = dataclasses.replace(stats, floor=stats.floor * (1.5 * FAINT_SHARE * albedo / body))
+    assert body_share(heavy.floor, heavy.albedo)[2] > FAINT_SHARE
+    return heavy
+
+
 def test_type_from_highlight_rules():
     """:func:`type_from_highlight` (a preview's type for data without a body): a highlight
     brighter than a dielectric interface reflects through the fall-off is a conductor's when
@@ -670,21 +694,13 @@ def test_type_from_highlight_rules():
     ``FAINT_SHARE`` of the light, or no albedo decide nothing (the full fits do)."""
     from twoscale.fit.material_type import (
         EVIDENCE_RTOL,
-        FAINT_SHARE,
-        body_share,
         dielectric_albedo_bound,
         type_from_highlight,
     )
-    from twoscale.fit.starts import DataStats
 
     bound = dielectric_albedo_bound((1.0, 3.0))
     assert 0.0 < bound < dielectric_albedo_bound(None)
-    floor = np.full(3, 1e-4)
-
-    def stats(highlight, floor=floor):
-        body, *_ = body_share(floor, np.ones(3))
-        return DataStats(np.ones(3), floor, 0.1, np.full(3, highlight + body))
-
+    stats = _bodiless_stats
     rms = {"conductor": 0.10, "plastic": 0.10}
     kind, reason = type_from_highlight(stats(1.5 * bound), rms, (1.0, 3.0))
     assert kind == "conductor" and "more than a dielectric" in reason, reason
@@ -698,10 +714,7 @@ def test_type_from_highlight_rules():
     assert type_from_highlight(stats(1.5 * bound), near, (1.0, 3.0))[0] == "conductor"
     # A floor carrying more than a bare metal's faint scatter, no albedo, one type: None.
     s = stats(1.5 * bound)
-    body, albedo, _ = body_share(floor, s.albedo)
-    heavy = dataclasses.replace(s, floor=floor * (1.5 * FAINT_SHARE * albedo / body))
-    assert body_share(heavy.floor, heavy.albedo)[2] > FAINT_SHARE
-    assert type_from_highlight(heavy, rms, (1.0, 3.0)) is None
+    assert type_from_highlight(_with_heavy_floor(s), rms, (1.0, 3.0)) is None
     assert type_from_highlight(dataclasses.replace(s, albedo=None), rms, (1.0, 3.0)) is None
     assert type_from_highlight(s, {"conductor": 0.1}, (1.0, 3.0)) is None
 
@@ -711,19 +724,13 @@ def test_preview_type_falls_back_on_the_lower_rms():
     special case with the lower RMS does (the plastic on a tie); a conductor the highlight
     decides stays one; a floor beyond ``FAINT_SHARE``, no albedo or one type decide nothing."""
     from twoscale.fit.material_type import (
-        FAINT_SHARE,
-        body_share,
         dielectric_albedo_bound,
         preview_type,
         type_from_highlight,
     )
-    from twoscale.fit.starts import DataStats
 
     bound = dielectric_albedo_bound((1.0, 3.0))
-    floor = np.full(3, 1e-4)
-    body, *_ = body_share(floor, np.ones(3))
-    dim = DataStats(np.ones(3), floor, 0.1, np.full(3, 0.5 * bound + body))
-    bright = dataclasses.replace(dim, albedo=np.full(3, 1.5 * bound + body))
+    dim, bright = _bodiless_stats(0.5 * bound), _bodiless_stats(1.5 * bound)
     for rms, want in (
         ({"conductor": 0.12, "plastic": 0.10}, "plastic"),
         ({"conductor": 0.10, "plastic": 0.12}, "conductor"),
@@ -739,9 +746,7 @@ def test_preview_type_falls_back_on_the_lower_rms():
     assert preview_type(bright, near, (1.0, 3.0))[0] == "conductor"
     # Nothing decided where the rule does not apply.
     rms = {"conductor": 0.12, "plastic": 0.10}
-    _b, albedo, _ = body_share(floor, dim.albedo)
-    heavy = dataclasses.replace(dim, floor=floor * (1.5 * FAINT_SHARE * albedo / body))
-    assert preview_type(heavy, rms, (1.0, 3.0)) is None
+    assert preview_type(_with_heavy_floor(dim), rms, (1.0, 3.0)) is None
     assert preview_type(dataclasses.replace(dim, albedo=None), rms, (1.0, 3.0)) is None
     assert preview_type(dim, {"plastic": 0.1}, (1.0, 3.0)) is None
 

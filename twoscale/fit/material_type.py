@@ -411,8 +411,10 @@ def preview_type(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     the same type and fit as the full fits on four; hematite, which the campaign accepts as
     either type, a plastic at log RMSE 0.1440 where the full fits choose a conductor at 0.1422).
     """
+    if not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
+        return None
     decided = type_from_highlight(stats, rms, fall_off)
-    if decided is not None or not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
+    if decided is not None:
         return decided
     winner = "plastic" if rms["plastic"] <= rms["conductor"] else "conductor"
     other = "conductor" if winner == "plastic" else "plastic"
