@@ -304,9 +304,13 @@ def test_needs_float64(ct_clean):
         jax.config.update("jax_enable_x64", True)
 
 
+@pytest.mark.slow
 def test_nested_start_keeps_full_model_at_least_as_good():
     """The full model contains the diffraction-off model (σ_s → 0): with the nested start its fit
-    is never worse than that model's own fit on the same cells and schedule."""
+    is never worse than that model's own fit on the same cells and schedule. (Three fits, ≈ 25 s
+    on 2 cores: the slow set. The fast set runs the nested start's code in
+    test_preview_of_a_bare_metal_fits_one_type, the full conductor started from its special
+    case, and test_narrow_start_placed_from_the_special_case.)"""
     from twoscale import ModelConfig, TwoScaleParams
 
     true = TwoScaleParams.conductor(0.1, 1.3, (0.3, 0.5, 1.2), (3.5, 2.6, 2.0))

@@ -5,9 +5,10 @@ the realistic mask (below-horizon cells plus random dropout: ≈ 24 % invalid). 
 starts, noise-free data must give back the parameters within 2 %, and 1 % multiplicative noise
 must give them back within a few reported standard errors, with the residual at the noise level.
 
-The default run fits one plastic with the preview schedule (the full-data refinement stage is
-the same solver on more cells: ``tests/test_fit.py`` and ``test_cli.py`` run it); the ``slow``
-cases add the conductor's preview fits and cover more parameter sets with the default schedule.
+The default run fits one noisy plastic with the preview schedule (the full-data refinement stage
+is the same solver on more cells: ``tests/test_fit.py`` and ``test_cli.py`` run it); the ``slow``
+cases add its noise-free fit, the conductor's preview fits and more parameter sets with the
+default schedule.
 """
 
 from __future__ import annotations
@@ -105,11 +106,13 @@ def _check_noisy(material: str, true: TwoScaleParams, schedule: str) -> None:
 
 
 # Each material's first fit in a module compiles its solver (≈ 20 s on 2 cores): the default run
-# fits the plastic (its full-model fit is run nowhere else by default), the slow run the conductor
-# too, whose fits the default run covers in tests/test_fit.py (the full model:
-# test_nested_start_keeps_full_model_at_least_as_good; the apparatus factor's e:
+# fits the plastic with noise (its full-model fit is run nowhere else by default), the slow run its
+# noise-free fit (the same code, ≈ 15 s more) and the conductor's, whose fits the default run
+# covers in tests/test_fit.py (the full model started from its special case:
+# test_preview_of_a_bare_metal_fits_one_type; the apparatus factor's e:
 # test_merl_protocol_default_is_apparatus; the type choice: test_type_choice_on_synthetic_materials)
 # and, in the slow set, by notebooks/fitting.ipynb.
+@pytest.mark.slow
 def test_recovery_noise_free():
     _check_noise_free("plastic", PLASTIC, "preview")
 
