@@ -723,6 +723,45 @@ def test_type_from_highlight_rules():
     assert type_from_highlight(s, {"conductor": 0.1}, (1.0, 3.0)) is None
 
 
+def test_highlight_suggests_conductor_before_any_fit():
+    """:func:`highlight_suggests_conductor`: the highlight's test of :func:`type_from_highlight`
+    alone (no fit's RMS), what a preview compiles ahead by; nothing for data with a body."""
+    from twoscale.fit.material_type import (
+        dielectric_albedo_bound,
+        highlight_suggests_conductor,
+        type_from_highlight,
+    )
+
+    bound = dielectric_albedo_bound((0.5, 2.0))
+    for factor in (0.5, 0.99, 1.01, 1.5):
+        stats = _bodiless_stats(factor * bound)
+        want = type_from_highlight(stats, {"conductor": 0.1, "plastic": 0.1}, (0.5, 2.0))
+        assert highlight_suggests_conductor(stats, (0.5, 2.0)) is (want is not None), factor
+    # Against the bound without a fall-off (larger), the same highlight suggests no conductor.
+    assert not highlight_suggests_conductor(_bodiless_stats(1.5 * bound), None)
+    assert not highlight_suggests_conductor(_with_heavy_floor(_bodiless_stats(1.5 * bound)), None)
+    assert not highlight_suggests_conductor(
+        dataclasses.replace(_bodiless_stats(1.5 * bound), albedo=None), (0.5, 2.0)
+    )
+
+
+def _full_models_compiled_ahead(monkeypatch) -> list:
+    """Spy on the fit's background compilation: the material of every full model (diffraction
+    on) whose solve is queued, in order."""
+    import twoscale.fit.solver as solver
+
+    queued = []
+    submit = solver.Warmup.submit
+
+    def spy(self, g, y0):
+        if g.adapter.config.diffraction:
+            queued.append(g.adapter.config.material)
+        return submit(self, g, y0)
+
+    monkeypatch.setattr(solver.Warmup, "submit", spy)
+    return queued
+
+
 def test_preview_type_falls_back_on_the_lower_rms():
     """:func:`preview_type`: where the highlight does not decide a bodiless material's type, the
     special case with the lower RMS does (the plastic on a tie); a conductor the highlight
@@ -755,10 +794,11 @@ def test_preview_type_falls_back_on_the_lower_rms():
     assert preview_type(dim, {"plastic": 0.1}, (1.0, 3.0)) is None
 
 
-def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
+def test_preview_of_a_bare_metal_fits_one_type(tmp_path, monkeypatch):
     """``starts="few"`` (``--preview``) on a bare metal's data (no floor): the special cases'
-    highlight decides the conductor, whose full model alone is fitted, with its Lambertian
-    floor from the first stage (no conversion before a last stage); the record says so."""
+    highlight decides the conductor, whose full model alone is fitted (and compiled ahead, as
+    its highlight suggests), with its Lambertian floor from the first stage (no conversion
+    before a last stage); the record says so."""
     from twoscale import ModelConfig, TwoScaleParams
     from twoscale.fit import merl_protocol
 
@@ -767,6 +807,7 @@ def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
     bare = synthetic(metal, cfg, noise=0.01, seed=6)
     stages = [Stage(2048, 1, 15), Stage(4096, 1, 8)]
     logs = []
+    ahead = _full_models_compiled_ahead(monkeypatch)
     res = fit(
         bare,
         config=merl_protocol(apparatus_knee=False),
@@ -784,13 +825,14 @@ def test_preview_of_a_bare_metal_fits_one_type(tmp_path):
     full = [e["start"] for st in res.stages for e in st["starts"]]
     assert full and all(label.startswith("conductor") for label in full), full
     assert not any("floor added" in line for line in logs), logs
+    assert ahead and set(ahead) == {"conductor"}, ahead
     assert "type conductor: no diffuse body" in res.summary()
     back = load_result(res.save(tmp_path / "params.json"))
     assert back.type_selection == json.loads(json.dumps(ts))
 
 
 @pytest.mark.slow
-def test_preview_of_a_bare_dielectric_fits_the_plastic_alone():
+def test_preview_of_a_bare_dielectric_fits_the_plastic_alone(monkeypatch):
     """``starts="few"`` on a dielectric interface without a body (ρ_d ≈ 0): its highlight is
     a dielectric's, so the highlight rule decides nothing, and the special cases' lower RMS
     gives the plastic, whose full model alone is fitted (the fast set checks the rule itself,
@@ -802,6 +844,7 @@ def test_preview_of_a_bare_dielectric_fits_the_plastic_alone():
     coat = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (1e-4, 1e-4, 1e-4), e=0.8)
     cfg = ModelConfig(diffraction=False, apparatus=True, material="plastic", diffuse_fresnel=False)
     bare = synthetic(coat, cfg, noise=0.01, seed=7)
+    ahead = _full_models_compiled_ahead(monkeypatch)
     res = fit(
         bare,
         config=merl_protocol(apparatus_knee=False),
@@ -813,6 +856,7 @@ def test_preview_of_a_bare_dielectric_fits_the_plastic_alone():
     assert ts["from_data"] and ts["chosen"] == "plastic" and ts["stage"] == 0, ts
     assert "lower RMS" in ts["reason"] and ts["rms"]["plastic"] <= ts["rms"]["conductor"], ts
     assert res.material == "plastic"
+    assert ahead and set(ahead) == {"plastic"}, ahead  # its dim highlight: compiled ahead
     full = [e["start"] for st in res.stages for e in st["starts"]]
     assert full and all(label.startswith("plastic") for label in full), full
     assert res.rmse_log < 0.05, res.rmse_log

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from twoscale.fit import solver as _solver
-from twoscale.fit.adapters import adapter_for, compile_key, floor_albedo_start
+from twoscale.fit.adapters import START_E, START_M, adapter_for, compile_key, floor_albedo_start
 from twoscale.fit.candidates import (
     NESTED_GRID,
     cross_seed,
@@ -44,6 +44,7 @@ from twoscale.fit.material_type import (
     faint_floor,
     fall_off_of,
     fresnel_choice_applies,
+    highlight_suggests_conductor,
     preview_type,
     resolve_configs,
     resolve_fresnel,
@@ -528,10 +529,17 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 warm.submit(sub_groups[c.group], c.y)
             if bodiless_preview:
                 # Only one type's full model is fitted, decided after the special cases: the
-                # conductor with its floor is compiled ahead (for nothing when the plastic wins;
-                # both or none ahead measured no faster), the plastic's solve when it is first
-                # called, and every full model if nothing was decided (below).
-                warm_full([floors.get(c, c) for c in configs if c.material == "conductor"])
+                # type the data's highlight suggests (through the fall-off the fits start from)
+                # is compiled ahead, a conductor with its floor; the other type's solve, if it
+                # wins, when it is first called; every full model if nothing was decided (below).
+                # Both or none ahead measured no faster: the two compilations share two cores.
+                start_fall_off = (START_E, START_M) if configs[0].apparatus else None
+                ahead = (
+                    "conductor"
+                    if highlight_suggests_conductor(prep.stats, start_fall_off)
+                    else "plastic"
+                )
+                warm_full([floors.get(c, c) for c in configs if c.material == ahead])
             else:
                 warm_full(configs)
         # The screening stages: every stage but the last, where a single candidate of the
