@@ -34,11 +34,29 @@ def _subplots(*args, **kwargs):
     return fig, fig.subplots(*args, **kwargs)
 
 
-def _save(fig, path, title: str = "") -> Path:
-    """Title (if any), tight layout, write the PNG at 100 dpi and close the figure."""
+#: Margins in inches (left, right, bottom, top) and the space between panels (a fraction of a
+#: panel's width) of the fit's pictures with log-scaled panels in a row (slices, lobes) and of
+#: the spheres: what ``tight_layout`` computed for them on two materials (2026-12-06), widened a
+#: little for longer tick labels (and, for the spheres, a gap between the two titles). Fixed,
+#: they save ``tight_layout``'s measuring pass (a draw of every text): 0.45 s of the three
+#: pictures' 1.1 s warm, 1.3 s of 4.3 s in a CLI run (its profile).
+ROW_OF_LOG_PANELS = (0.85, 0.15, 0.6, 0.7, 0.06)
+SPHERES = (0.15, 0.15, 0.15, 0.6, 0.05)
+
+
+def _save(fig, path, title: str = "", margins=None) -> Path:
+    """Title (if any), the layout (``margins``: ``(left, right, bottom, top)`` in inches and
+    the space between panels, else ``tight_layout``), write the PNG at 100 dpi."""
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    if margins is None:
+        fig.tight_layout()
+    else:
+        left, right, bottom, top, wspace = margins
+        w, h = fig.get_size_inches()
+        fig.subplots_adjust(
+            left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h, wspace=wspace
+        )
     fig.savefig(path, dpi=100)
     return Path(path)
 
@@ -162,7 +180,7 @@ def plot_slices(
     if y_hi > 0:  # the measured range sets the scale (the model may soar at grazing angles)
         axes[0].set_ylim(y_lo / 3, y_hi * 3)
     axes[0].set_ylabel("ρ (1/sr)   dots: measured, lines: fit")
-    return _save(fig, path, title)
+    return _save(fig, path, title, ROW_OF_LOG_PANELS)
 
 
 def _plane_dirs(theta_i_deg, n=361):
@@ -213,7 +231,7 @@ def plot_lobes(model, path, *, data=None, lobe_model=None, theta_i_deg=(0, 30, 6
         ax.grid(True, which="both", alpha=0.2)
     axes[0].set_ylabel("ρ green (1/sr)")
     axes[0].legend(fontsize=7)
-    return _save(fig, path, title)
+    return _save(fig, path, title, ROW_OF_LOG_PANELS)
 
 
 def sphere_directions(size: int = 160, light_deg: float = 30.0):
@@ -277,7 +295,9 @@ def plot_spheres(data, model, path, *, size: int = 160, light_deg: float = 30.0,
         ax.imshow(_tonemap(img, scale), interpolation="nearest")
         ax.set_title(name)
         ax.axis("off")
-    return _save(fig, path, title or f"point light at {light_deg:g}° from the view direction")
+    return _save(
+        fig, path, title or f"point light at {light_deg:g}° from the view direction", SPHERES
+    )
 
 
 def write_fit_pictures(result, data, out_dir, *, adapter=None) -> list[Path]:
