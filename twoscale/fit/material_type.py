@@ -381,7 +381,7 @@ def highlight_suggests_conductor(stats, fall_off) -> bool:
     fit (the fitted fall-off, not known yet, decides the type): a wrong guess costs only the
     compilation of the other type's model after the decision, what every bodiless preview
     paid before. On the bodiless stand-ins and mixtures measured (2026-12-06) it guessed the
-    preview's type on 18 of 19 (blue-metallic-paint2 guessed a conductor, decided a plastic).
+    preview's type on 17 of 18 (blue-metallic-paint2 guessed a conductor, decided a plastic).
     """
     if not faint_floor(stats):
         return False
