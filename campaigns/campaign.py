@@ -2,7 +2,7 @@
 
     python -m campaigns.campaign [--out campaigns/RESULTS.md] [--folder DIR] [--preview] [--limit N]
         [--materials NAME ...] [--records DIR [--resume]] [--gallery DIR | --no-gallery]
-        [--no-apparatus]
+        [--no-apparatus] [--apparatus-angles theta_io|theta_d]
 
 For each material it fits, with the same driver, metric and schedule:
 
@@ -11,7 +11,7 @@ For each material it fits, with the same driver, metric and schedule:
 3. the Cook-Torrance + Lambert baselines (GGX and Beckmann, :mod:`twoscale.baselines`);
 
 every one with MERL's apparatus factor ``L(θ_i) L(θ_o)`` on the specular term (``--no-apparatus``
-turns it off for all of them). It writes a Markdown report: log and linear RMSE on all valid cells
+turns it off for all of them; ``--apparatus-angles theta_d`` makes it ``L(θ_d)²`` for all). It writes a Markdown report: log and linear RMSE on all valid cells
 and on the cells with ``θ_i, θ_o ≤ 80°``, the material type chosen against the one expected from
 the material's name (:func:`expected_type`), convergence and times, and a summary computed from
 these rows. The report is rewritten after every material, so a long campaign can be watched.
@@ -184,8 +184,16 @@ class Row:
         return self.material == self.expected
 
 
-def _baseline_config(dist: str, apparatus: bool = True):
-    """``CookTorranceConfig(dist, apparatus=...)``; a clear error where the field is missing."""
+#: The apparatus factor's forms as the report writes them.
+FALL_OFF_FORMS = {
+    "theta_io": "`L(θ_i) L(θ_o)`",
+    "theta_d": "`L(θ_d)²` (`--apparatus-angles theta_d`)",
+}
+
+
+def _baseline_config(dist: str, apparatus: bool = True, apparatus_angles: str = "theta_io"):
+    """``CookTorranceConfig(dist, apparatus=..., apparatus_angles=...)``; a clear error where
+    the field is missing."""
     from twoscale.baselines import CookTorranceConfig
 
     if not apparatus:
@@ -194,7 +202,9 @@ def _baseline_config(dist: str, apparatus: bool = True):
         raise RuntimeError(
             "this twoscale's CookTorranceConfig has no apparatus field: run with --no-apparatus"
         )
-    return CookTorranceConfig(dist, apparatus=True, apparatus_knee=True)
+    return CookTorranceConfig(
+        dist, apparatus=True, apparatus_knee=True, apparatus_angles=apparatus_angles
+    )
 
 
 def _cell_rmse(pred: np.ndarray, cells) -> dict:
@@ -221,8 +231,11 @@ def rmse_below(res, cells) -> dict:
 
 
 def _settings_key(settings: dict) -> dict:
-    """The settings a record must share to be reused by ``--resume``."""
-    return {k: settings.get(k) for k in ("schedule", "metric", "apparatus", "max_theta")}
+    """The settings a record must share to be reused by ``--resume`` (a record without the
+    apparatus factor's angles was made with the paper's, ``"theta_io"``)."""
+    key = {k: settings.get(k) for k in ("schedule", "metric", "apparatus", "max_theta")}
+    key["apparatus_angles"] = settings.get("apparatus_angles") or "theta_io"
+    return key
 
 
 def _record_entry(row: Row, key: str, settings: dict) -> dict:
@@ -276,6 +289,7 @@ def fit_material(
     metric: str,
     schedule: str,
     apparatus: bool = True,
+    apparatus_angles: str = "theta_io",
     source: str = "",
     log=print,
     records: Path | None = None,
@@ -304,6 +318,7 @@ def fit_material(
         "schedule": schedule,
         "metric": metric,
         "apparatus": apparatus,
+        "apparatus_angles": apparatus_angles,
         "max_theta": max_theta_deg,
     }
     cells_80 = select_cells(data, max_theta_deg=THETA_CUT).fit
@@ -365,16 +380,17 @@ def fit_material(
             _save_record(record, res, _record_entry(row, key, settings))
         return res
 
-    full = run("full", merl_protocol(apparatus=apparatus), "auto", fresnel="auto")
+    protocol = {"apparatus": apparatus, "apparatus_angles": apparatus_angles}
+    full = run("full", merl_protocol(**protocol), "auto", fresnel="auto")
     row.material = full.material
     # The special case: the full fit's configuration (protocol, material type, Fresnel form) with
     # the diffraction lobe off.
-    special = merl_protocol(apparatus=apparatus, diffraction=False)
+    special = merl_protocol(**protocol, diffraction=False)
     if isinstance(full.model_config, type(special)):
         special = dataclasses.replace(full.model_config, diffraction=False)
     run("specular", special, full.material)
     for key in BASELINES:
-        run(key, _baseline_config(key, apparatus))
+        run(key, _baseline_config(key, apparatus, apparatus_angles))
     return row, results, data
 
 
@@ -392,6 +408,8 @@ def _fit_with_cli(path, records, name: str, row: Row, settings: dict, log):
         extra.append("--preview")
     if not settings["apparatus"]:
         extra.append("--no-apparatus")
+    if settings.get("apparatus_angles", "theta_io") != "theta_io":
+        extra += ["--apparatus-angles", settings["apparatus_angles"]]
     if settings["max_theta"] is not None:
         extra += ["--max-theta", str(settings["max_theta"])]
     run = run_cli(path, out_parent / "cli", extra)
@@ -642,7 +660,12 @@ def write_report(path, rows: list[Row], settings: dict) -> Path:
         "",
         f"Generated by `python -m campaigns.campaign` ({settings['schedule']} schedule, fitted metric "
         f"`{settings['metric']}`, MERL's apparatus factor "
-        + ("on for every model" if apparatus else "off (`--no-apparatus`)")
+        + (
+            "on for every model, as "
+            + FALL_OFF_FORMS[settings.get("apparatus_angles") or "theta_io"]
+            if apparatus
+            else "off (`--no-apparatus`)"
+        )
         + "). RMSE over cells and channels of the cosine-weighted log metric "
         "`log(1 + ρ_model cos θ_i) − log(1 + ρ_meas cos θ_i)` and linear metric "
         f"`(ρ_model − ρ_meas) cos θ_i`, on all valid cells and on the valid cells with {cut}, "
@@ -772,6 +795,12 @@ def main(argv=None) -> int:
         help="fit every model without MERL's apparatus factor (default: on for every model)",
     )
     ap.add_argument(
+        "--apparatus-angles",
+        choices=("theta_io", "theta_d"),
+        default="theta_io",
+        help="the apparatus factor's angles for every model: L(θ_i) L(θ_o) (default) or L(θ_d)²",
+    )
+    ap.add_argument(
         "--cli",
         action="store_true",
         help="fit the full model through `python -m twoscale.fit` (exit status, end-to-end time)",
@@ -820,6 +849,7 @@ def main(argv=None) -> int:
         "metric": args.metric,
         "max_theta": args.max_theta,
         "apparatus": apparatus,
+        "apparatus_angles": args.apparatus_angles,
     }
     rows: list[Row] = []
     pictures: dict[str, Path] = {}
@@ -848,6 +878,7 @@ def main(argv=None) -> int:
                     metric=args.metric,
                     schedule=schedule,
                     apparatus=apparatus,
+                    apparatus_angles=args.apparatus_angles,
                     source=source,
                     log=log,
                     records=records,

@@ -163,6 +163,35 @@ def test_dict_roundtrip_and_config_validation():
         CookTorranceConfig("phong")
 
 
+def test_apparatus_angles_theta_d():
+    """``apparatus_angles="theta_d"``: the specular term carries ``L(θ_d)²`` (θ_d from the half
+    vector) instead of ``L(θ_i) L(θ_o)``; the body is unchanged; the switch round-trips and a
+    record without it reads as the paper's form."""
+    from twoscale.model import apparatus_factor
+
+    p = CookTorranceParams(0.3, [0.9, 0.5, 0.05], [0.2, 0.1, 0.05], e=0.9, m=3.0)
+    wi, wo = _dir(1.2, 0.0), _dir(1.45, 0.3)  # rough lobe, forward and grazing
+    bare = CookTorranceParams(0.3, [0.9, 0.5, 0.05], [0.2, 0.1, 0.05])
+    body = np.asarray(p.rho_d) / math.pi
+    spec = np.asarray(cook_torrance(bare, wi, wo)) - body
+    h = (np.asarray(wi) + np.asarray(wo)) / np.linalg.norm(np.asarray(wi) + np.asarray(wo))
+    cd = float(np.dot(np.asarray(wi), h))
+    for angles, fall in (
+        (
+            "theta_io",
+            apparatus_factor(math.cos(1.2), 0.9, 3.0) * apparatus_factor(math.cos(1.45), 0.9, 3.0),
+        ),
+        ("theta_d", apparatus_factor(cd, 0.9, 3.0) ** 2),
+    ):
+        cfg = CookTorranceConfig(apparatus=True, apparatus_knee=True, apparatus_angles=angles)
+        got = np.asarray(cook_torrance(p, wi, wo, cfg))
+        np.testing.assert_allclose(got, body + spec * float(fall), rtol=1e-10)
+        assert CookTorranceConfig.from_dict(cfg.to_dict()) == cfg
+    assert CookTorranceConfig.from_dict({"distribution": "ggx"}).apparatus_angles == "theta_io"
+    with pytest.raises(ValueError, match="apparatus_angles"):
+        CookTorranceConfig(apparatus_angles="theta_h")
+
+
 @pytest.mark.parametrize("dist", ["ggx", "beckmann"])
 def test_uncorrelated_shadowing(dist):
     """``shadowing="uncorrelated"``: the specular term carries ``G1(i) G1(o)`` instead of the

@@ -267,6 +267,20 @@ def test_baseline_config():
     assert campaign._baseline_config("beckmann", False) == CookTorranceConfig("beckmann")
     if "apparatus" in {f.name for f in dataclasses.fields(CookTorranceConfig)}:
         assert campaign._baseline_config("ggx").apparatus is True
+    assert campaign._baseline_config("ggx").apparatus_angles == "theta_io"
+    assert campaign._baseline_config("ggx", True, "theta_d").apparatus_angles == "theta_d"
+
+
+def test_resume_key_has_the_apparatus_angles():
+    """A record made before the switch existed was made with the paper's ``L(θ_i) L(θ_o)``:
+    ``--resume`` reuses it for that form and not for ``L(θ_d)²``."""
+    old = {"schedule": "default", "metric": "blend", "apparatus": True, "max_theta": None}
+    assert campaign._settings_key(old) == campaign._settings_key(
+        {**old, "apparatus_angles": "theta_io"}
+    )
+    assert campaign._settings_key(old) != campaign._settings_key(
+        {**old, "apparatus_angles": "theta_d"}
+    )
 
 
 def test_materials_selection(tmp_path):

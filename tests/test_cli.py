@@ -342,3 +342,36 @@ def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
         )
     else:
         assert seen[1] == merl_protocol(shadowing="uncorrelated")
+
+
+@pytest.mark.parametrize("baseline", [[], ["--baseline", "ggx"]])
+def test_cli_passes_the_apparatus_angles(files, tmp_path, monkeypatch, baseline):
+    """``--apparatus-angles theta_d`` reaches the two-scale model's configuration and the
+    baseline's alike; the default is the paper's ``L(θ_i) L(θ_o)``; a record keeps it."""
+    import twoscale.fit.driver as driver
+    from twoscale.baselines import CookTorranceConfig
+    from twoscale.fit import merl_protocol
+    from twoscale.fit.adapters import adapter_for, config_from_dict
+
+    seen = []
+
+    def spy(data, *, config, material, **kwargs):
+        seen.append(config)
+        raise driver.FitError("stopped by the test")
+
+    monkeypatch.setattr(driver, "fit", spy)
+    for flags in ([], ["--apparatus-angles", "theta_d"]):
+        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *baseline, *flags])
+        assert rc == EXIT_FIT
+    assert [c.apparatus_angles for c in seen] == ["theta_io", "theta_d"]
+    if baseline:
+        want = CookTorranceConfig(
+            "ggx", apparatus=True, apparatus_knee=True, apparatus_angles="theta_d"
+        )
+    else:
+        want = merl_protocol(apparatus_angles="theta_d")
+    assert seen[1] == want
+    saved = adapter_for(want).config_to_dict()
+    assert saved["apparatus_angles"] == "theta_d" and config_from_dict(saved) == want
+    saved.pop("apparatus_angles")  # a record written before the switch existed
+    assert config_from_dict(saved).apparatus_angles == "theta_io"

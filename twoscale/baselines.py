@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
-from twoscale.config import SHADOWING
+from twoscale.config import APPARATUS_ANGLES, SHADOWING
 from twoscale.model import PAPER_KNEE, apparatus_factor
 from twoscale.params import bounds_for
 
@@ -59,6 +59,8 @@ class CookTorranceConfig:
             ``L(θ) = [1 − (2θ/π)^m]^e`` (adds ``e``; m = 2).
         apparatus_knee: with ``apparatus``, also fit the knee exponent ``m`` (adds ``m``), as
             the two-scale model's MERL protocol does.
+        apparatus_angles: ``"theta_io"`` (``L(θ_i) L(θ_o)``; default) or ``"theta_d"``
+            (``L(θ_d)²``), as the two-scale model's switch of the same name.
         shadowing: ``"correlated"`` (height-correlated Smith, ``1/(1 + Λ_i + Λ_o)``) or
             ``"uncorrelated"`` (``G1(i) G1(o)``), as the two-scale model's switch of the same
             name (docs/model.md §3.3), so that a comparison can give both models the same form.
@@ -68,6 +70,7 @@ class CookTorranceConfig:
     apparatus: bool = False
     apparatus_knee: bool = False
     shadowing: str = "correlated"
+    apparatus_angles: str = "theta_io"
 
     def __post_init__(self):
         if self.distribution not in _DISTRIBUTIONS:
@@ -79,6 +82,10 @@ class CookTorranceConfig:
                 raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
         if self.shadowing not in SHADOWING:
             raise ValueError(f"shadowing must be one of {SHADOWING}, got {self.shadowing!r}")
+        if self.apparatus_angles not in APPARATUS_ANGLES:
+            raise ValueError(
+                f"apparatus_angles must be one of {APPARATUS_ANGLES}, got {self.apparatus_angles!r}"
+            )
 
     @property
     def fits_knee(self) -> bool:
@@ -106,6 +113,7 @@ class CookTorranceConfig:
             "apparatus": self.apparatus,
             "apparatus_knee": self.apparatus_knee,
             "shadowing": self.shadowing,
+            "apparatus_angles": self.apparatus_angles,
         }
 
     @classmethod
@@ -115,6 +123,7 @@ class CookTorranceConfig:
             apparatus=bool(d.get("apparatus", False)),
             apparatus_knee=bool(d.get("apparatus_knee", False)),
             shadowing=d.get("shadowing", "correlated"),
+            apparatus_angles=d.get("apparatus_angles", "theta_io"),
         )
 
 
@@ -254,7 +263,10 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
         if config.fits_knee and params.m is None:
             raise ValueError("CookTorranceConfig(apparatus_knee=True) needs the parameter m")
         m = params.m if config.fits_knee else PAPER_KNEE
-        spec = spec * apparatus_factor(ci, params.e, m) * apparatus_factor(co, params.e, m)
+        if config.apparatus_angles == "theta_d":
+            spec = spec * apparatus_factor(cos_d, params.e, m) ** 2
+        else:
+            spec = spec * apparatus_factor(ci, params.e, m) * apparatus_factor(co, params.e, m)
     schlick = (1.0 - cos_d) ** 5
     f = params.f0 + (1.0 - params.f0) * schlick[..., None]
     rho = params.rho_d / jnp.pi + f * spec[..., None]

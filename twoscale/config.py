@@ -23,6 +23,8 @@ __all__ = ["ModelConfig", "MATERIALS", "PARAM_ORDER"]
 MATERIALS = ("conductor", "plastic", "subsurface")
 Q_MODES = ("2F", "F", "full")
 SHADOWING = ("correlated", "uncorrelated")
+#: The angles of the apparatus factor (``ModelConfig.apparatus_angles``).
+APPARATUS_ANGLES = ("theta_io", "theta_d")
 PATHS = ("tables", "exact")
 SPECTRAL_OUTPUTS = ("rgb", "spectrum")
 FRESNEL_FORMS = ("exact", "schlick")
@@ -57,6 +59,11 @@ class ModelConfig:
         apparatus_knee: with ``apparatus``, also fit the knee exponent ``m`` of ``L`` (adds ``m``;
             the MERL protocol's default, :func:`twoscale.fit.merl_protocol`). Ignored without
             ``apparatus``.
+        apparatus_angles: the angles of the apparatus factor: ``"theta_io"``, ``L(θ_i) L(θ_o)``
+            (the paper's form; default), or ``"theta_d"``, ``L(θ_d)²``: the same at the mirror
+            direction (where θ_i = θ_o = θ_d), off it a function of the half angle between the
+            directions only, which leaves the forward grazing cells of rough lobes undimmed
+            (measured better on rough MERL stand-ins, §3.11). Ignored without ``apparatus``.
         diffuse_eta2: divide the plastic diffuse layer by ``η̄²`` (radiance compression at the
             varnish, as in Weidlich-Wilkie style layered models). Off (default) is the reference's
             §3.9 form, which has no ``1/η²`` and whose albedo exceeds 1 for bright layers
@@ -98,6 +105,7 @@ class ModelConfig:
     shadowing: str = "correlated"
     apparatus: bool = False
     apparatus_knee: bool = False
+    apparatus_angles: str = "theta_io"
     diffuse_eta2: bool = False
     diffuse_fresnel: bool = True
     fresnel: str = "exact"
@@ -111,6 +119,7 @@ class ModelConfig:
         _choice("material", self.material, MATERIALS)
         _choice("q_mode", self.q_mode, Q_MODES)
         _choice("shadowing", self.shadowing, SHADOWING)
+        _choice("apparatus_angles", self.apparatus_angles, APPARATUS_ANGLES)
         _choice("path", self.path, PATHS)
         _choice("spectral_output", self.spectral_output, SPECTRAL_OUTPUTS)
         _choice("fresnel", self.fresnel, FRESNEL_FORMS)

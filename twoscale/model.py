@@ -455,6 +455,19 @@ def _cell_g(ch: _Channels, cos_i, cos_o, phi, cfg: ModelConfig):
     return _shadowing_g(static, ch.par["beta"], ch.par["p"], cos_i, cos_o, phi)
 
 
+def _apparatus_weight(cos_i, cos_o, phi, e, m, angles: str):
+    """The apparatus factor of a cell (§3.11): ``L(θ_i) L(θ_o)`` (``angles="theta_io"``) or
+    ``L(θ_d)²`` (``"theta_d"``), ``cos θ_d`` from ``cos 2θ_d = i·o = cos θ_i cos θ_o +
+    sin θ_i sin θ_o cos φ``, ``φ`` the cell's azimuth difference."""
+    if angles == "theta_io":
+        return apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
+    sin_i = safe_sqrt((1.0 - cos_i) * (1.0 + cos_i))
+    sin_o = safe_sqrt((1.0 - cos_o) * (1.0 + cos_o))
+    dot = cos_i * cos_o + sin_i * sin_o * jnp.cos(phi)
+    cos_d = safe_sqrt(jnp.clip(0.5 * (1.0 + dot), 0.0, 1.0))
+    return apparatus_factor(cos_d, e, m) ** 2
+
+
 def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig, g=None) -> dict:
     """Every switched-on lobe, ``(..., N)``, from the half/difference factors ``hd`` (see
     :func:`_half_diff_terms`, broadcast against the cells) and the cells' ``cos θ_i``,
@@ -476,7 +489,7 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig, g=
         spec = g / jnp.maximum(4.0 * cos_i * cos_o, tiny(ch.dtype))
         if cfg.apparatus:
             e, m = ch.par["e"], ch.par.get("m", PAPER_KNEE)
-            spec = spec * apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
+            spec = spec * _apparatus_weight(cos_i, cos_o, phi, e, m, cfg.apparatus_angles)
         out["specular"] = hd["specular"] * _chan(ch, spec)
     if cfg.has_diffuse:
         eta_bar = _eta_bar(ch, cfg) if ch.eta_bar is None else ch.eta_bar
