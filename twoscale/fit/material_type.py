@@ -49,8 +49,9 @@ def merl_protocol(
       GGX + Lambert. ``campaigns/RESULTS.md`` has the whole campaign;
     - the factor's angles (``apparatus_angles``): the paper's ``L(θ_i) L(θ_o)`` by default;
       ``"theta_d"``, ``L(θ_d)²``, fitted rough stand-ins 4–46 % better with both models and none
-      worse on the twelve tried (``campaigns/RESULTS.md``, check of the eighth session), but
-      the campaign on the 60 that would make it the default has not been run;
+      worse on the twelve tried, but color-changing-paint1 14.5 % worse in the campaign's first
+      30 (``campaigns/RESULTS.md``, checks of the eighth session); the campaign on the 60 that
+      would decide the default has not been run;
     - the reference's height-direction correlated shadowing (``shadowing``; §3.3).
       ``"uncorrelated"`` (``G1(i) G1(o)``, more shadowing at grazing angles) fits rough glossy
       stand-ins better (the fitted RMS of the woods and black-oxidized-steel 3–9 % lower), but
