@@ -317,13 +317,10 @@ def test_cli_passes_the_merl_protocol(
     assert seen["metric"] == metric
 
 
-@pytest.mark.parametrize("baseline", [[], ["--baseline", "ggx"]])
-def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
-    """``--shadowing uncorrelated`` reaches the two-scale model's configuration and the
-    baseline's alike; the default is the reference's correlated form."""
+def _configs_the_cli_passes(files, tmp_path, monkeypatch, runs) -> list:
+    """The configuration ``main`` hands the fit for each list of extra arguments in ``runs``
+    (the fit itself replaced by a spy that stops it: exit 3)."""
     import twoscale.fit.driver as driver
-    from twoscale.baselines import CookTorranceConfig
-    from twoscale.fit import merl_protocol
 
     seen = []
 
@@ -332,9 +329,21 @@ def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
         raise driver.FitError("stopped by the test")
 
     monkeypatch.setattr(driver, "fit", spy)
-    for flags in ([], ["--shadowing", "uncorrelated"]):
-        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *baseline, *flags])
+    for flags in runs:
+        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *flags])
         assert rc == EXIT_FIT
+    return seen
+
+
+@pytest.mark.parametrize("baseline", [[], ["--baseline", "ggx"]])
+def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
+    """``--shadowing uncorrelated`` reaches the two-scale model's configuration and the
+    baseline's alike; the default is the reference's correlated form."""
+    from twoscale.baselines import CookTorranceConfig
+    from twoscale.fit import merl_protocol
+
+    runs = (baseline, [*baseline, "--shadowing", "uncorrelated"])
+    seen = _configs_the_cli_passes(files, tmp_path, monkeypatch, runs)
     assert [c.shadowing for c in seen] == ["correlated", "uncorrelated"]
     if baseline:
         assert seen[1] == CookTorranceConfig(
@@ -348,21 +357,12 @@ def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
 def test_cli_passes_the_apparatus_angles(files, tmp_path, monkeypatch, baseline):
     """``--apparatus-angles theta_d`` reaches the two-scale model's configuration and the
     baseline's alike; the default is the paper's ``L(θ_i) L(θ_o)``; a record keeps it."""
-    import twoscale.fit.driver as driver
     from twoscale.baselines import CookTorranceConfig
     from twoscale.fit import merl_protocol
     from twoscale.fit.adapters import adapter_for, config_from_dict
 
-    seen = []
-
-    def spy(data, *, config, material, **kwargs):
-        seen.append(config)
-        raise driver.FitError("stopped by the test")
-
-    monkeypatch.setattr(driver, "fit", spy)
-    for flags in ([], ["--apparatus-angles", "theta_d"]):
-        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--quiet", *baseline, *flags])
-        assert rc == EXIT_FIT
+    runs = (baseline, [*baseline, "--apparatus-angles", "theta_d"])
+    seen = _configs_the_cli_passes(files, tmp_path, monkeypatch, runs)
     assert [c.apparatus_angles for c in seen] == ["theta_io", "theta_d"]
     if baseline:
         want = CookTorranceConfig(
