@@ -25,8 +25,8 @@ which rough glossy materials such as MERL's woods fit better (3–9 % lower RMS 
 tried; sharp highlights do not change). ``--apparatus-angles theta_d`` makes the apparatus
 factor ``L(θ_d)²`` (for the baselines too): the same at the mirror direction, but it leaves the
 forward grazing cells of rough lobes undimmed, where the stand-ins keep their values (default
-fits of twelve stand-ins 4–46 % better for the rough ones, none worse, both models; but one
-of the campaign's first 30, color-changing-paint1, 14.5 % worse: ``campaigns/RESULTS.md``). A conductor gets a faint Lambertian floor ``ρ_d/π`` once
+fits of the 60 stand-ins up to 46 % better for the rough ones, both models; three worse,
+color-changing-paint1 by 14.5 %: ``campaigns/RESULTS.md``). A conductor gets a faint Lambertian floor ``ρ_d/π`` once
 the fit has chosen that type (measured metals scatter a little light diffusely, which the bare
 conductor renders black); ``--no-conductor-floor`` keeps the reference's conductor.
 

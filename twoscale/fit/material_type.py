@@ -48,10 +48,10 @@ def merl_protocol(
       (specular-red-phenolic: equal), and only with it do pink-plastic and white-fabric beat
       GGX + Lambert. ``campaigns/RESULTS.md`` has the whole campaign;
     - the factor's angles (``apparatus_angles``): the paper's ``L(θ_i) L(θ_o)`` by default;
-      ``"theta_d"``, ``L(θ_d)²``, fitted rough stand-ins 4–46 % better with both models and none
-      worse on the twelve tried, but color-changing-paint1 14.5 % worse in the campaign's first
-      30 (``campaigns/RESULTS.md``, checks of the eighth session); the campaign on the 60 that
-      would decide the default has not been run;
+      ``"theta_d"``, ``L(θ_d)²``: over the 60 stand-ins the two-scale model below GGX + Lambert
+      on 55 (54) with a median improvement of 31.4 % (20.7 %), the rough ones up to 46 %
+      better with both models, but three worse, color-changing-paint1 by 14.5 %
+      (``campaigns/RESULTS.md``, checks of the eighth session): not the default yet;
     - the reference's height-direction correlated shadowing (``shadowing``; §3.3).
       ``"uncorrelated"`` (``G1(i) G1(o)``, more shadowing at grazing angles) fits rough glossy
       stand-ins better (the fitted RMS of the woods and black-oxidized-steel 3–9 % lower), but
