@@ -773,6 +773,8 @@ def main(argv=None) -> int:
     from twoscale._hugepages import avoid_hugepage_stalls
 
     avoid_hugepage_stalls()  # as the CLI (twoscale/_hugepages.py)
+    from twoscale.config import APPARATUS_ANGLES
+
     ap = argparse.ArgumentParser(
         prog="python -m campaigns.campaign", description=__doc__.split("\n")[0]
     )
@@ -796,7 +798,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--apparatus-angles",
-        choices=("theta_io", "theta_d"),
+        choices=APPARATUS_ANGLES,
         default="theta_io",
         help="the apparatus factor's angles for every model: L(θ_i) L(θ_o) (default) or L(θ_d)²",
     )

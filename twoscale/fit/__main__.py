@@ -100,6 +100,8 @@ class FitFailed(Exception):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from twoscale.config import APPARATUS_ANGLES
+
     ap = argparse.ArgumentParser(
         prog="python -m twoscale.fit",
         description="Fit the two-scale microfacet BRDF to a MERL .binary file.",
@@ -163,7 +165,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--apparatus-angles",
-        choices=("theta_io", "theta_d"),
+        choices=APPARATUS_ANGLES,
         default="theta_io",
         help="the angles of the apparatus factor: L(θ_i) L(θ_o), the paper's (default), or "
         "L(θ_d)², which leaves the forward grazing cells of rough lobes undimmed (rough "
