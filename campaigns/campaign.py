@@ -2,7 +2,7 @@
 
     python -m campaigns.campaign [--out campaigns/RESULTS.md] [--folder DIR] [--preview] [--limit N]
         [--materials NAME ...] [--records DIR [--resume]] [--gallery DIR | --no-gallery]
-        [--no-apparatus] [--apparatus-angles theta_io|theta_d]
+        [--no-apparatus] [--apparatus-angles theta_d|theta_io]
 
 For each material it fits, with the same driver, metric and schedule:
 
@@ -10,8 +10,9 @@ For each material it fits, with the same driver, metric and schedule:
 2. the specular lobe alone (EPD + diffuse, diffraction off), same material type;
 3. the Cook-Torrance + Lambert baselines (GGX and Beckmann, :mod:`twoscale.baselines`);
 
-every one with MERL's apparatus factor ``L(θ_i) L(θ_o)`` on the specular term (``--no-apparatus``
-turns it off for all of them; ``--apparatus-angles theta_d`` makes it ``L(θ_d)²`` for all). It writes a Markdown report: log and linear RMSE on all valid cells
+every one with MERL's apparatus factor ``L(θ_d)²`` on the specular term (the MERL protocol's;
+``--no-apparatus`` turns it off for all of them; ``--apparatus-angles theta_io`` makes it the
+paper's ``L(θ_i) L(θ_o)`` for all). It writes a Markdown report: log and linear RMSE on all valid cells
 and on the cells with ``θ_i, θ_o ≤ 80°``, the material type chosen against the one expected from
 the material's name (:func:`expected_type`), convergence and times, and a summary computed from
 these rows. The report is rewritten after every material, so a long campaign can be watched.
@@ -39,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twoscale.fit.material_type import MERL_APPARATUS_ANGLES
 from twoscale.fit.residuals import DEFAULT_METRIC, METRICS
 from twoscale.fit.solver import STALL_RTOL
 
@@ -186,12 +188,14 @@ class Row:
 
 #: The apparatus factor's forms as the report writes them.
 FALL_OFF_FORMS = {
-    "theta_io": "`L(θ_i) L(θ_o)`",
-    "theta_d": "`L(θ_d)²` (`--apparatus-angles theta_d`)",
+    "theta_io": "`L(θ_i) L(θ_o)` (`--apparatus-angles theta_io`)",
+    "theta_d": "`L(θ_d)²`",
 }
 
 
-def _baseline_config(dist: str, apparatus: bool = True, apparatus_angles: str = "theta_io"):
+def _baseline_config(
+    dist: str, apparatus: bool = True, apparatus_angles: str = MERL_APPARATUS_ANGLES
+):
     """``CookTorranceConfig(dist, apparatus=..., apparatus_angles=...)``; a clear error where
     the field is missing."""
     from twoscale.baselines import CookTorranceConfig
@@ -289,7 +293,7 @@ def fit_material(
     metric: str,
     schedule: str,
     apparatus: bool = True,
-    apparatus_angles: str = "theta_io",
+    apparatus_angles: str = MERL_APPARATUS_ANGLES,
     source: str = "",
     log=print,
     records: Path | None = None,
@@ -408,8 +412,7 @@ def _fit_with_cli(path, records, name: str, row: Row, settings: dict, log):
         extra.append("--preview")
     if not settings["apparatus"]:
         extra.append("--no-apparatus")
-    if settings.get("apparatus_angles", "theta_io") != "theta_io":
-        extra += ["--apparatus-angles", settings["apparatus_angles"]]
+    extra += ["--apparatus-angles", settings.get("apparatus_angles") or "theta_io"]
     if settings["max_theta"] is not None:
         extra += ["--max-theta", str(settings["max_theta"])]
     run = run_cli(path, out_parent / "cli", extra)
@@ -799,8 +802,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--apparatus-angles",
         choices=APPARATUS_ANGLES,
-        default="theta_io",
-        help="the apparatus factor's angles for every model: L(θ_i) L(θ_o) (default) or L(θ_d)²",
+        default=MERL_APPARATUS_ANGLES,
+        help="the apparatus factor's angles for every model: L(θ_d)² (default, the MERL "
+        "protocol's) or L(θ_i) L(θ_o)",
     )
     ap.add_argument(
         "--cli",

@@ -267,8 +267,9 @@ def test_baseline_config():
     assert campaign._baseline_config("beckmann", False) == CookTorranceConfig("beckmann")
     if "apparatus" in {f.name for f in dataclasses.fields(CookTorranceConfig)}:
         assert campaign._baseline_config("ggx").apparatus is True
-    assert campaign._baseline_config("ggx").apparatus_angles == "theta_io"
-    assert campaign._baseline_config("ggx", True, "theta_d").apparatus_angles == "theta_d"
+    # The MERL protocol's L(θ_d)², as the two-scale model's (merl_protocol).
+    assert campaign._baseline_config("ggx").apparatus_angles == "theta_d"
+    assert campaign._baseline_config("ggx", True, "theta_io").apparatus_angles == "theta_io"
 
 
 def test_resume_key_has_the_apparatus_angles():

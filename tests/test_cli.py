@@ -347,7 +347,11 @@ def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
     assert [c.shadowing for c in seen] == ["correlated", "uncorrelated"]
     if baseline:
         assert seen[1] == CookTorranceConfig(
-            "ggx", apparatus=True, apparatus_knee=True, shadowing="uncorrelated"
+            "ggx",
+            apparatus=True,
+            apparatus_knee=True,
+            shadowing="uncorrelated",
+            apparatus_angles="theta_d",
         )
     else:
         assert seen[1] == merl_protocol(shadowing="uncorrelated")
@@ -355,22 +359,26 @@ def test_cli_passes_the_shadowing(files, tmp_path, monkeypatch, baseline):
 
 @pytest.mark.parametrize("baseline", [[], ["--baseline", "ggx"]])
 def test_cli_passes_the_apparatus_angles(files, tmp_path, monkeypatch, baseline):
-    """``--apparatus-angles theta_d`` reaches the two-scale model's configuration and the
-    baseline's alike; the default is the paper's ``L(θ_i) L(θ_o)``; a record keeps it."""
+    """``--apparatus-angles`` reaches the two-scale model's configuration and the baseline's
+    alike; the default is the MERL protocol's ``L(θ_d)²``, ``theta_io`` the paper's
+    ``L(θ_i) L(θ_o)``; a record keeps it."""
     from twoscale.baselines import CookTorranceConfig
     from twoscale.fit import merl_protocol
     from twoscale.fit.adapters import adapter_for, config_from_dict
 
-    runs = (baseline, [*baseline, "--apparatus-angles", "theta_d"])
+    runs = (baseline, [*baseline, "--apparatus-angles", "theta_io"])
     seen = _configs_the_cli_passes(files, tmp_path, monkeypatch, runs)
-    assert [c.apparatus_angles for c in seen] == ["theta_io", "theta_d"]
+    assert [c.apparatus_angles for c in seen] == ["theta_d", "theta_io"]
+    if not baseline:
+        assert seen[0] == merl_protocol()
+        assert seen[1] == merl_protocol(apparatus_angles="theta_io")
     if baseline:
         want = CookTorranceConfig(
             "ggx", apparatus=True, apparatus_knee=True, apparatus_angles="theta_d"
         )
     else:
         want = merl_protocol(apparatus_angles="theta_d")
-    assert seen[1] == want
+    assert seen[0] == want
     saved = adapter_for(want).config_to_dict()
     assert saved["apparatus_angles"] == "theta_d" and config_from_dict(saved) == want
     saved.pop("apparatus_angles")  # a record written before the switch existed

@@ -4,12 +4,12 @@
         [--material auto|conductor|plastic|subsurface] [--max-theta DEG] [--preview]
         [--full] [--no-apparatus] [--no-apparatus-knee] [--diffuse-fresnel]
         [--fresnel auto|exact|schlick] [--shadowing correlated|uncorrelated]
-        [--apparatus-angles theta_io|theta_d]
+        [--apparatus-angles theta_d|theta_io]
         [--no-conductor-floor]
         [--no-compile-cache] [--no-albedo] [--render]
     python -m twoscale.fit --example            # synthetic material, no data needed
 
-MERL protocol (default): the apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the
+MERL protocol (default): the apparatus factor ``L(θ_d)²``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the
 specular lobe, with ``e`` and ``m`` fitted (MERL's measured values fall off at grazing angles;
 without it the model is forced to fit that fall-off with its shape parameters).
 ``--no-apparatus-knee`` keeps the paper's ``m = 2``; ``--no-apparatus`` fits the bare model.
@@ -22,11 +22,12 @@ on the diffraction-off special case, then on the full model; the exact form wins
 ``schlick`` fixes it. ``--shadowing uncorrelated`` replaces the reference's height-direction
 correlated shadowing by ``G1(i) G1(o)`` (for the baselines too): more shadowing at grazing angles,
 which rough glossy materials such as MERL's woods fit better (3–9 % lower RMS on the stand-ins
-tried; sharp highlights do not change). ``--apparatus-angles theta_d`` makes the apparatus
-factor ``L(θ_d)²`` (for the baselines too): the same at the mirror direction, but it leaves the
-forward grazing cells of rough lobes undimmed, where the stand-ins keep their values (default
-fits of the 60 stand-ins up to 46 % better for the rough ones, both models; three worse,
-color-changing-paint1 by 14.5 %: ``campaigns/RESULTS.md``). A conductor gets a faint Lambertian floor ``ρ_d/π`` once
+tried; sharp highlights do not change). The apparatus factor is ``L(θ_d)²`` (for the baselines
+too): the same as the paper's ``L(θ_i) L(θ_o)`` at the mirror direction, but it leaves the forward
+grazing cells of rough lobes undimmed, where the stand-ins keep their values (over the 60
+stand-ins the two-scale model's median improvement on GGX + Lambert 31.4 % against 20.7 %, the
+rough ones up to 46 % better with both models; three worse, color-changing-paint1 by 14.5 %:
+``campaigns/RESULTS.md``); ``--apparatus-angles theta_io`` fits the paper's form. A conductor gets a faint Lambertian floor ``ρ_d/π`` once
 the fit has chosen that type (measured metals scatter a little light diffusely, which the bare
 conductor renders black); ``--no-conductor-floor`` keeps the reference's conductor.
 
@@ -101,6 +102,7 @@ class FitFailed(Exception):
 
 def _parser() -> argparse.ArgumentParser:
     from twoscale.config import APPARATUS_ANGLES
+    from twoscale.fit.material_type import MERL_APPARATUS_ANGLES
 
     ap = argparse.ArgumentParser(
         prog="python -m twoscale.fit",
@@ -166,10 +168,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--apparatus-angles",
         choices=APPARATUS_ANGLES,
-        default="theta_io",
-        help="the angles of the apparatus factor: L(θ_i) L(θ_o), the paper's (default), or "
-        "L(θ_d)², which leaves the forward grazing cells of rough lobes undimmed (rough "
-        "materials fit better, campaigns/RESULTS.md); for --baseline too",
+        default=MERL_APPARATUS_ANGLES,
+        help="the angles of the apparatus factor: L(θ_d)² (theta_d, default), which leaves the "
+        "forward grazing cells of rough lobes undimmed (rough materials fit better, "
+        "campaigns/RESULTS.md), or the paper's L(θ_i) L(θ_o) (theta_io); for --baseline too",
     )
     ap.add_argument(
         "--shadowing",
@@ -274,6 +276,7 @@ def _example_data():
     """The ``--example`` material: the model itself (with the apparatus factor, as MERL data) +
     1 % noise + a realistic invalid mask."""
     from twoscale.config import ModelConfig
+    from twoscale.fit.material_type import MERL_APPARATUS_ANGLES
     from twoscale.fit.synthetic import synthetic
     from twoscale.params import TwoScaleParams
 
@@ -281,7 +284,9 @@ def _example_data():
     params = TwoScaleParams.conductor(
         e["beta"], e["p"], e["eta"], e["k"], sigma_s=e["sigma_s"], b=e["b"], c=e["c"], e=e["e"]
     )
-    config = ModelConfig(material="conductor", apparatus=True)
+    config = ModelConfig(
+        material="conductor", apparatus=True, apparatus_angles=MERL_APPARATUS_ANGLES
+    )
     data = synthetic(params, config, noise=0.01, seed=1, name="example")
     return data, params
 
