@@ -3,21 +3,21 @@
     python -m campaigns.fall_off_form DATA.binary RECORD.json [RECORD.json ...]
         [--cells 150000] [--seed 0]
 
-The MERL protocol multiplies the specular lobe by the apparatus factor ``L(θ_i) L(θ_o)``,
-``L(θ) = [1 − (2θ/π)^m]^e`` (docs/model.md §3.11). This script asks whether the same factor of
-another angle fits the data better, without refitting a whole model: it holds every parameter of
+The paper multiplies the specular lobe by the apparatus factor ``L(θ_i) L(θ_o)``,
+``L(θ) = [1 − (2θ/π)^m]^e`` (docs/model.md §3.11); the MERL protocol uses ``L(θ_d)²``. This
+script asks whether the same factor of another angle fits the data better, without refitting a whole model: it holds every parameter of
 a fit (a two-scale or GGX/Beckmann + Lambert record written by ``python -m twoscale.fit``) except
 ``e`` and ``m``, splits the model into its specular lobe (which the factor multiplies) and the
 rest, and refits ``(e, m)`` alone, within the models' ranges (e ∈ [0, 5], m ∈ [1, 20]), on the
 plain log metric ``log(1 + ρ cos θ_i)`` over a random subsample of valid cells, for each form:
 
-- ``theta_io``: ``L(θ_i) L(θ_o)``, the protocol's form;
+- ``theta_io``: ``L(θ_i) L(θ_o)``, the paper's form;
 - ``theta_d``: ``L(θ_d)²`` (the same at the mirror direction, where ``θ_i = θ_o = θ_d``; off it,
   a function of the half angle between the directions only);
 - ``none``: no factor.
 
 It prints the log RMSE of each on all the subsample's cells, on those with θ_i or θ_o above 80°
-and on the others. The other parameters were fitted with the protocol's form, so the comparison
+and on the others. The other parameters were fitted with the record's form, so the comparison
 favours it; a form that still fits better is worth a model of its own.
 """
 

@@ -141,7 +141,8 @@ def _parser() -> argparse.ArgumentParser:
         "--apparatus",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="MERL's grazing fall-off L(θ_i) L(θ_o) on the specular lobe, exponent e fitted "
+        help="MERL's grazing fall-off (L(θ_d)², see --apparatus-angles) on the specular lobe, "
+        "exponent e fitted "
         "(default: on; --no-apparatus for the bare model)",
     )
     ap.add_argument(

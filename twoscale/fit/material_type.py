@@ -44,10 +44,10 @@ def merl_protocol(
 ):
     """The model configuration the fitter uses for MERL data unless told otherwise.
 
-    ``ModelConfig(apparatus=True, apparatus_knee=True, diffuse_fresnel=False,
-    conductor_floor=True)`` (material chosen by the fit):
+    ``ModelConfig(apparatus=True, apparatus_knee=True, apparatus_angles="theta_d",
+    diffuse_fresnel=False, conductor_floor=True)`` (material chosen by the fit):
 
-    - MERL's apparatus factor ``L(θ_i) L(θ_o)``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the specular
+    - MERL's apparatus factor ``L(θ_d)²``, ``L(θ) = [1 − (2θ/π)^m]^e``, on the specular
       lobe, its exponent ``e`` and knee exponent ``m`` fitted (docs/model.md §3.11): MERL's
       values fall off at grazing angles, and without it the shape parameters are bent to fit
       that fall-off. The knee (``apparatus_knee``; none without ``apparatus``) lets the fall-off
@@ -228,7 +228,8 @@ EVIDENCE_RTOL = 0.1
 
 def dielectric_albedo_bound(fall_off=None, eta: float = ETA_COAT_MAX, n: int = 2048) -> float:
     """The bihemispherical albedo of a smooth dielectric interface of index ``eta`` seen through
-    MERL's apparatus fall-off ``L(θ_i) L(θ_o)``: ``2 ∫ F(θ) L(θ)² cos θ sin θ dθ`` over
+    MERL's apparatus fall-off (``L(θ)²`` at the mirror direction, in either of its forms):
+    ``2 ∫ F(θ) L(θ)² cos θ sin θ dθ`` over
     ``[0, π/2]`` (a mirror reflects θ_i into θ_o = θ_i). ``fall_off``: ``(e, m)`` of
     ``L(θ) = [1 − (2θ/π)^m]^e`` (docs/model.md §3.11), or ``None`` for none. A rough interface
     of the same index reflects less (its facets shadow each other), so this bounds every
