@@ -38,6 +38,8 @@ from twoscale.fit.evaluation import (
     warm_evaluation,
 )
 from twoscale.fit.material_type import (
+    FRESNEL_TIE_RTOL,
+    FRESNEL_TRY_RTOL,
     body_levels,
     choose_fresnel,
     choose_type,
@@ -48,6 +50,7 @@ from twoscale.fit.material_type import (
     preview_type,
     resolve_configs,
     resolve_fresnel,
+    schlick_worth_trying,
     type_from_body,
 )
 from twoscale.fit.record import FitResult, package_versions
@@ -453,8 +456,9 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
     full model starts from a fit of its diffraction-off special case (same settings, the
     screening stages: every stage but the last; :func:`~twoscale.fit.candidates.nested_starts`). With
     ``settings.fresnel == "auto"``, a dielectric type's special case is fitted with the exact
-    Fresnel equations and with Schlick's form; if Schlick's fits it better
-    (:func:`~twoscale.fit.material_type.choose_fresnel`), the full model is fitted with both
+    Fresnel equations and with Schlick's form; if Schlick's fits it better by more than
+    :data:`~twoscale.fit.material_type.FRESNEL_TRY_RTOL`
+    (:func:`~twoscale.fit.material_type.schlick_worth_trying`), the full model is fitted with both
     forms (a configuration with Schlick's form is appended, with its own nested starts) and
     :func:`_run_schedule` keeps one by the full model's RMS; otherwise the exact form alone goes
     on. ``fresnel_selection``: ``{material: {"special_case": ..., "chosen", "reason"}}`` (the
@@ -573,18 +577,23 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             }
             # starts="few" (--preview): the special case's choice, one full model per type.
             preview = form == "schlick" and few
+            both = not few and schlick_worth_trying(best[gi].cost, best[ti].cost)
             selection[configs[gi].material] = {
                 "special_case": special,
                 "chosen": "schlick" if preview else "exact",
                 "reason": "starts='few': the diffraction-off special case's choice"
                 if preview
-                else "Schlick's form did not fit the diffraction-off special case better",
+                else "Schlick's form did not fit the diffraction-off special case better by "
+                f"more than {FRESNEL_TRY_RTOL:.1%}"
+                if not both
+                else "Schlick's form did not fit the full model better by more than "
+                f"{FRESNEL_TIE_RTOL:.0%}",
             }
             say(f"{configs[gi].material} coat's Fresnel form, special case: {form} ({reason})")
             if preview:
                 configs[gi] = dataclasses.replace(configs[gi], fresnel="schlick")
                 source[gi] = ti
-            elif form == "schlick":  # both forms go on; the full model's RMS decides
+            elif both:  # both forms go on; the full model's RMS decides
                 configs.append(dataclasses.replace(configs[gi], fresnel="schlick"))
                 start_lists.append([])
                 source.append(ti)
@@ -793,8 +802,9 @@ def fit(
             ``"schlick"`` (see ``ModelConfig.fresnel``) or ``"auto"`` (with ``nested``): each
             dielectric type's diffraction-off special case is fitted with both forms; where
             Schlick's lowers that RMS by more than
-            :data:`~twoscale.fit.material_type.FRESNEL_TIE_RTOL`, the full model is fitted with
-            both and keeps Schlick's only if it lowers the full model's RMS by as much, at the
+            :data:`~twoscale.fit.material_type.FRESNEL_TRY_RTOL` (0.5 %), the full model is
+            fitted with both and keeps Schlick's only if it lowers the full model's RMS by more
+            than :data:`~twoscale.fit.material_type.FRESNEL_TIE_RTOL` (2 %), at the
             stage where the material type is chosen (``FitResult.fresnel_selection`` records
             both comparisons). ``None`` (default): ``"auto"`` under the MERL protocol
             (``config=None``), else the configuration's own form.
