@@ -15,9 +15,11 @@ from twoscale import ModelConfig, TwoScaleParams, fresnel
 from twoscale.fit import Stage, fit, synthetic
 from twoscale.fit.material_type import (
     FRESNEL_TIE_RTOL,
+    FRESNEL_TRY_RTOL,
     choose_fresnel,
     fresnel_choice_applies,
     resolve_fresnel,
+    schlick_worth_trying,
 )
 
 #: Compiled with most XLA optimisations off (tests/conftest.py): this module's time is compilation
@@ -183,6 +185,12 @@ def test_choose_fresnel_and_resolve():
     assert choose_fresnel(0.10, 0.10 * (1 - 0.5 * FRESNEL_TIE_RTOL))[0] == "exact"  # a tie
     assert choose_fresnel(0.10, 0.12)[0] == "exact"
     assert choose_fresnel(0.10, math.inf)[0] == "exact"
+    # Worth fitting the full model with Schlick's form too: from a smaller gain than the tie.
+    assert FRESNEL_TRY_RTOL < FRESNEL_TIE_RTOL
+    assert schlick_worth_trying(0.10, 0.10 * (1 - 0.5 * FRESNEL_TIE_RTOL))
+    assert not schlick_worth_trying(0.10, 0.10 * (1 - 0.5 * FRESNEL_TRY_RTOL))
+    assert not schlick_worth_trying(0.10, 0.12) and not schlick_worth_trying(0.10, math.inf)
+    assert schlick_worth_trying(math.inf, 0.10)
     both = [ModelConfig(), EXACT]
     assert resolve_fresnel(both, None, protocol=True) == (both, "auto")
     assert resolve_fresnel(both, None, protocol=False) == (both, None)
