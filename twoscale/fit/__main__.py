@@ -26,9 +26,9 @@ tried; sharp highlights do not change). The apparatus factor is ``L(θ_d)²`` (f
 too): the same as the paper's ``L(θ_i) L(θ_o)`` at the mirror direction, but it leaves the forward
 grazing cells of rough lobes undimmed, where the stand-ins keep their values (over the 60
 stand-ins the two-scale model's median improvement on GGX + Lambert 31.4 % against 20.7 %, the
-rough ones up to 46 % better with both models; three worse, color-changing-paint1 by 14.5 %:
-``campaigns/RESULTS.md``); ``--apparatus-angles theta_io`` fits the paper's form. A conductor gets a faint Lambertian floor ``ρ_d/π`` once
-the fit has chosen that type (measured metals scatter a little light diffusely, which the bare
+rough ones up to 46 % better with both models; ``campaigns/RESULTS.md``);
+``--apparatus-angles theta_io`` fits the paper's form. A conductor gets a faint Lambertian floor
+``ρ_d/π`` once the fit has chosen that type (measured metals scatter a little light diffusely, which the bare
 conductor renders black); ``--no-conductor-floor`` keeps the reference's conductor.
 
 Compiled code is kept in JAX's persistent compilation cache, in ``$TWOSCALE_CACHE_DIR`` or
