@@ -38,11 +38,6 @@ E_RANGE = (0.0, 5.0)
 M_RANGE = (1.0, 20.0)
 
 
-def _fall_off(theta, e, m):
-    base = np.clip(1.0 - (2.0 * theta / math.pi) ** m, 1e-300, None)
-    return base**e
-
-
 def split_lobes(params, config, wi, wo):
     """``(specular, rest)``, each ``(N, C)``, of a fitted model without its apparatus factor."""
     import jax
@@ -69,6 +64,7 @@ def compare_forms(data, params, config, n_cells: int = 150_000, seed: int = 0) -
     from scipy.optimize import least_squares
 
     from twoscale.merl import grid_directions
+    from twoscale.model import apparatus_weight
 
     wi, wo = (np.asarray(a).reshape(-1, 3) for a in grid_directions("lower"))
     valid = np.asarray(data.valid).reshape(-1)
@@ -80,19 +76,18 @@ def compare_forms(data, params, config, n_cells: int = 150_000, seed: int = 0) -
     rho = np.asarray(data.values).reshape(-1, np.asarray(data.values).shape[-1])[idx]
     spec, rest = split_lobes(params, config, wi, wo)
     cos_i = wi[:, 2:3]
-    theta_i, theta_o = np.arccos(np.clip(wi[:, 2], -1, 1)), np.arccos(np.clip(wo[:, 2], -1, 1))
     h = wi + wo
     h /= np.linalg.norm(h, axis=1, keepdims=True)
-    theta_d = np.arccos(np.clip(np.sum(wi * h, axis=1), -1.0, 1.0))
-    grazing = (theta_i > math.radians(80)) | (theta_o > math.radians(80))
-    factors = {
-        "theta_io": lambda e, m: _fall_off(theta_i, e, m) * _fall_off(theta_o, e, m),
-        "theta_d": lambda e, m: _fall_off(theta_d, e, m) ** 2,
-        "none": lambda e, m: np.ones_like(theta_i),
-    }
+    cos_d = np.clip(np.sum(wi * h, axis=1), 0.0, 1.0)
+    cos_80 = math.cos(math.radians(80))
+    grazing = (wi[:, 2] < cos_80) | (wo[:, 2] < cos_80)
 
     def residuals(x, form):
-        pred = factors[form](*x)[:, None] * spec + rest
+        if form == "none":
+            factor = np.ones(len(cos_d))
+        else:
+            factor = np.asarray(apparatus_weight(wi[:, 2], wo[:, 2], cos_d, *x, form))
+        pred = factor[:, None] * spec + rest
         return (np.log1p(pred * cos_i) - np.log1p(rho * cos_i)).ravel()
 
     e0 = float(np.max(params.e)) if getattr(params, "e", None) is not None else 0.5

@@ -23,6 +23,7 @@ from twoscale.baselines import CookTorranceConfig, CookTorranceParams
 from twoscale.fit import Stage, fit, load_result, synthetic
 from twoscale.fit.adapters import adapter_for
 from twoscale.fit.cells import Cells, pack, pair_cells, select_cells
+from twoscale.fit.material_type import MERL_APPARATUS_ANGLES
 from twoscale.fit.residuals import Layout, Problem, compressed_residuals, normal_equations
 from twoscale.fit.starts import data_stats
 
@@ -803,12 +804,12 @@ def test_preview_of_a_bare_metal_fits_one_type(tmp_path, monkeypatch):
     from twoscale.fit import merl_protocol
 
     metal = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
-    # MERL-like data under the protocol's fall-off form (MERL_APPARATUS_ANGLES).
+    # MERL-like data under the protocol's fall-off form.
     cfg = ModelConfig(
         diffraction=False,
         apparatus=True,
         material="conductor",
-        apparatus_angles=merl_protocol().apparatus_angles,
+        apparatus_angles=MERL_APPARATUS_ANGLES,
     )
     bare = synthetic(metal, cfg, noise=0.01, seed=6)
     stages = [Stage(2048, 1, 15), Stage(4096, 1, 8)]
@@ -848,7 +849,7 @@ def test_preview_of_a_bare_dielectric_fits_the_plastic_alone(monkeypatch):
     from twoscale.fit import merl_protocol
 
     coat = TwoScaleParams.plastic(0.08, 1.5, (1.5, 1.5, 1.5), (1e-4, 1e-4, 1e-4), e=0.8)
-    # MERL-like data under the protocol's fall-off form (MERL_APPARATUS_ANGLES): with data made
+    # MERL-like data under the protocol's fall-off form: with data made
     # with the paper's L(θ_i) L(θ_o) instead (a form the protocol does not fit), the bare
     # conductor fitted this coat 0.7 % better (0.01953 against 0.01966, 2026-12-07) and the
     # preview typed it a conductor.
@@ -857,7 +858,7 @@ def test_preview_of_a_bare_dielectric_fits_the_plastic_alone(monkeypatch):
         apparatus=True,
         material="plastic",
         diffuse_fresnel=False,
-        apparatus_angles=merl_protocol().apparatus_angles,
+        apparatus_angles=MERL_APPARATUS_ANGLES,
     )
     bare = synthetic(coat, cfg, noise=0.01, seed=7)
     ahead = _full_models_compiled_ahead(monkeypatch)

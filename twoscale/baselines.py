@@ -30,7 +30,7 @@ from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
 from twoscale.config import APPARATUS_ANGLES, SHADOWING
-from twoscale.model import PAPER_KNEE, apparatus_factor
+from twoscale.model import PAPER_KNEE, apparatus_weight
 from twoscale.params import bounds_for
 
 __all__ = [
@@ -263,10 +263,7 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
         if config.fits_knee and params.m is None:
             raise ValueError("CookTorranceConfig(apparatus_knee=True) needs the parameter m")
         m = params.m if config.fits_knee else PAPER_KNEE
-        if config.apparatus_angles == "theta_d":
-            spec = spec * apparatus_factor(cos_d, params.e, m) ** 2
-        else:
-            spec = spec * apparatus_factor(ci, params.e, m) * apparatus_factor(co, params.e, m)
+        spec = spec * apparatus_weight(ci, co, cos_d, params.e, m, config.apparatus_angles)
     schlick = (1.0 - cos_d) ** 5
     f = params.f0 + (1.0 - params.f0) * schlick[..., None]
     rho = params.rho_d / jnp.pi + f * spec[..., None]

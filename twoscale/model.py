@@ -455,17 +455,26 @@ def _cell_g(ch: _Channels, cos_i, cos_o, phi, cfg: ModelConfig):
     return _shadowing_g(static, ch.par["beta"], ch.par["p"], cos_i, cos_o, phi)
 
 
+def apparatus_weight(cos_i, cos_o, cos_d, e, m, angles: str):
+    """MERL's apparatus factor of a direction pair (§3.11): ``L(θ_i) L(θ_o)``
+    (``angles="theta_io"``) or ``L(θ_d)²`` (``"theta_d"``; ``cos_d`` is used by it only). The
+    two-scale model, the baselines and ``campaigns.fall_off_form`` share it."""
+    if angles == "theta_d":
+        return apparatus_factor(cos_d, e, m) ** 2
+    return apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
+
+
 def _apparatus_weight(cos_i, cos_o, phi, e, m, angles: str):
-    """The apparatus factor of a cell (§3.11): ``L(θ_i) L(θ_o)`` (``angles="theta_io"``) or
-    ``L(θ_d)²`` (``"theta_d"``), ``cos θ_d`` from ``cos 2θ_d = i·o = cos θ_i cos θ_o +
-    sin θ_i sin θ_o cos φ``, ``φ`` the cell's azimuth difference."""
-    if angles == "theta_io":
-        return apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
-    sin_i = safe_sqrt((1.0 - cos_i) * (1.0 + cos_i))
-    sin_o = safe_sqrt((1.0 - cos_o) * (1.0 + cos_o))
-    dot = cos_i * cos_o + sin_i * sin_o * jnp.cos(phi)
-    cos_d = safe_sqrt(jnp.clip(0.5 * (1.0 + dot), 0.0, 1.0))
-    return apparatus_factor(cos_d, e, m) ** 2
+    """:func:`apparatus_weight` of a cell, ``cos θ_d`` (for ``"theta_d"``) from
+    ``cos 2θ_d = i·o = cos θ_i cos θ_o + sin θ_i sin θ_o cos φ``, ``φ`` the cell's azimuth
+    difference."""
+    cos_d = None
+    if angles == "theta_d":
+        sin_i = safe_sqrt((1.0 - cos_i) * (1.0 + cos_i))
+        sin_o = safe_sqrt((1.0 - cos_o) * (1.0 + cos_o))
+        dot = cos_i * cos_o + sin_i * sin_o * jnp.cos(phi)
+        cos_d = safe_sqrt(jnp.clip(0.5 * (1.0 + dot), 0.0, 1.0))
+    return apparatus_weight(cos_i, cos_o, cos_d, e, m, angles)
 
 
 def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig, g=None) -> dict:

@@ -578,16 +578,19 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             # starts="few" (--preview): the special case's choice, one full model per type.
             preview = form == "schlick" and few
             both = not few and schlick_worth_trying(best[gi].cost, best[ti].cost)
+            if preview:
+                why = "starts='few': the diffraction-off special case's choice"
+            elif both:  # replaced by the full model's comparison when it is made
+                why = f"Schlick's form did not fit the full model better by more than {FRESNEL_TIE_RTOL:.0%}"
+            else:
+                why = (
+                    "Schlick's form did not fit the diffraction-off special case better by more "
+                    f"than {FRESNEL_TRY_RTOL:.1%}"
+                )
             selection[configs[gi].material] = {
                 "special_case": special,
                 "chosen": "schlick" if preview else "exact",
-                "reason": "starts='few': the diffraction-off special case's choice"
-                if preview
-                else "Schlick's form did not fit the diffraction-off special case better by "
-                f"more than {FRESNEL_TRY_RTOL:.1%}"
-                if not both
-                else "Schlick's form did not fit the full model better by more than "
-                f"{FRESNEL_TIE_RTOL:.0%}",
+                "reason": why,
             }
             say(f"{configs[gi].material} coat's Fresnel form, special case: {form} ({reason})")
             if preview:
