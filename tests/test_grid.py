@@ -15,6 +15,7 @@ from twoscale.fit.adapters import adapter_for
 from twoscale.fit.candidates import Candidate, same_solution
 from twoscale.fit.cells import pack, pair_cells, select_cells
 from twoscale.fit.evaluation import predict_cells
+from twoscale.fit.material_type import merl_protocol
 from twoscale.fit.residuals import Layout, Problem, normal_equations
 from twoscale.fit.synthetic import synthetic
 from twoscale.geometry import _dirs_from_half_diff
@@ -217,13 +218,19 @@ FIT_CASES = [
         twoscale.ModelConfig(material="plastic", apparatus=True, fresnel="schlick"),
     ),
     (CONDUCTOR.replace(beta=0.12, p=1.2), twoscale.ModelConfig(diffraction=False)),
+    # The MERL protocol's conductor: L(θ_d)² with its knee, a factor of θ_d (differentiated
+    # per bin, in e and m too), and the Lambertian floor.
+    (
+        CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6, e=0.7, m=3.0, rho_d=(0.01, 0.02, 0.005)),
+        merl_protocol(),
+    ),
 ]
 
 
 @pytest.mark.parametrize(
     # The plastic compiles for ≈ 24 s (the conductor covers the same factor code): the slow set.
     "case",
-    [0, pytest.param(1, marks=pytest.mark.slow), 2],
+    [0, pytest.param(1, marks=pytest.mark.slow), 2, 3],
 )
 def test_factorised_normal_equations_match_jacfwd(conductor_data, case):
     """The fit's per-bin factorisation (factors of θ_d, θ_h and of both differentiated once per

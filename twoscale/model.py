@@ -412,14 +412,16 @@ def _half_diff_terms(
 ) -> dict:
     """The factors of the lobes that depend on ``θ_h`` and ``θ_d`` only, each ``(..., N)``.
 
-    ``"specular"``: ``A_s F(θ_d) D(θ_h)``; ``"diffraction"``: ``(1 − A_s) Q (S*D)(θ_h)
+    ``"specular"``: ``A_s F(θ_d) D(θ_h)`` (times ``L(θ_d)²``, the apparatus factor of
+    ``apparatus_angles="theta_d"``); ``"diffraction"``: ``(1 − A_s) Q (S*D)(θ_h)
     (c−1)B²/(2π R)`` (without ``Q`` for the full polarisation factor, which depends on both
     directions). :func:`_cell_lobes` multiplies them by the factors of ``θ_i``, ``θ_o`` and ``φ``
-    (``G``, ``1/(4 cos θ_i cos θ_o)``, apparatus, ``Q``), so on a grid of half/difference angles
-    (MERL) these are computed once per ``(θ_h, θ_d)`` bin instead of once per cell.
+    (``G``, ``1/(4 cos θ_i cos θ_o)``, the paper's apparatus factor ``L(θ_i) L(θ_o)``, ``Q``), so
+    on a grid of half/difference angles (MERL) these are computed once per ``(θ_h, θ_d)`` bin
+    instead of once per cell.
 
     ``factored``: each term as a pair ``(factor of θ_d, factor of θ_h or of both)`` instead of
-    their product: ``(A_s F, D)`` and ``((1 − A_s) Q (c−1)B²/(2π R), (S*D))``. The fit's
+    their product: ``(A_s F [L(θ_d)²], D)`` and ``((1 − A_s) Q (c−1)B²/(2π R), (S*D))``. The fit's
     passes differentiate these once per bin and multiply them per cell, which is cheaper than
     differentiating the products on every bin (:func:`half_diff_factors`). ``lobe``: the
     convolved lobe, when the caller computed it already.
@@ -445,7 +447,11 @@ def _half_diff_terms(
         a_s = 1.0
     if cfg.specular:
         d = _chan(ch, distribution.ndf(cos_h, ch.par["beta"], ch.par["p"]))
-        out["specular"] = (a_s * f, d) if factored else a_s * f * d
+        per_d = a_s * f
+        fall_off = _apparatus_of_theta_d(ch, cfg, cos_d)
+        if fall_off is not None:
+            per_d = per_d * _chan(ch, fall_off)
+        out["specular"] = (per_d, d) if factored else per_d * d
     return out
 
 
@@ -464,17 +470,20 @@ def apparatus_weight(cos_i, cos_o, cos_d, e, m, angles: str):
     return apparatus_factor(cos_i, e, m) * apparatus_factor(cos_o, e, m)
 
 
-def _apparatus_weight(cos_i, cos_o, phi, e, m, angles: str):
-    """:func:`apparatus_weight` of a cell, ``cos θ_d`` (for ``"theta_d"``) from
-    ``cos 2θ_d = i·o = cos θ_i cos θ_o + sin θ_i sin θ_o cos φ``, ``φ`` the cell's azimuth
-    difference."""
-    cos_d = None
-    if angles == "theta_d":
-        sin_i = safe_sqrt((1.0 - cos_i) * (1.0 + cos_i))
-        sin_o = safe_sqrt((1.0 - cos_o) * (1.0 + cos_o))
-        dot = cos_i * cos_o + sin_i * sin_o * jnp.cos(phi)
-        cos_d = safe_sqrt(jnp.clip(0.5 * (1.0 + dot), 0.0, 1.0))
-    return apparatus_weight(cos_i, cos_o, cos_d, e, m, angles)
+def _apparatus_per_cell(cfg: ModelConfig) -> bool:
+    """Is the apparatus factor a weight of the cells (``L(θ_i) L(θ_o)``)? ``L(θ_d)²`` is a
+    factor of ``θ_d`` alone: :func:`_half_diff_terms` puts it into the specular lobe's ``θ_d``
+    factor, so on a grid it is computed once per ``θ_d`` bin (90 for MERL) instead of once per
+    cell, and the fit's passes differentiate it there."""
+    return cfg.apparatus and cfg.apparatus_angles != "theta_d"
+
+
+def _apparatus_of_theta_d(ch: _Channels, cfg: ModelConfig, cos_d):
+    """``L(θ_d)²`` (``apparatus_angles="theta_d"``), or None where it is not a ``θ_d`` factor."""
+    if not cfg.apparatus or _apparatus_per_cell(cfg):
+        return None
+    e, m = ch.par["e"], ch.par.get("m", PAPER_KNEE)
+    return apparatus_weight(None, None, cos_d, e, m, "theta_d")
 
 
 def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig, g=None) -> dict:
@@ -496,9 +505,9 @@ def _cell_lobes(ch: _Channels, hd: dict, cos_i, cos_o, phi, cfg: ModelConfig, g=
     if cfg.specular:
         # cos θ_i cos θ_o > 0 above the horizon; the floor only guards underflow.
         spec = g / jnp.maximum(4.0 * cos_i * cos_o, tiny(ch.dtype))
-        if cfg.apparatus:
+        if _apparatus_per_cell(cfg):  # L(θ_d)² is in hd["specular"] (_half_diff_terms)
             e, m = ch.par["e"], ch.par.get("m", PAPER_KNEE)
-            spec = spec * _apparatus_weight(cos_i, cos_o, phi, e, m, cfg.apparatus_angles)
+            spec = spec * apparatus_weight(cos_i, cos_o, None, e, m, cfg.apparatus_angles)
         out["specular"] = hd["specular"] * _chan(ch, spec)
     if cfg.has_diffuse:
         eta_bar = _eta_bar(ch, cfg) if ch.eta_bar is None else ch.eta_bar
@@ -716,15 +725,16 @@ def brdf_grid(
 
     The same model and values as :func:`brdf` at the grid's directions (equal to rounding), but
     each factor is computed at its own resolution: Fresnel, ``R``, ``A_s`` once per ``θ_d``
-    bin, ``D`` per ``θ_h`` bin, the convolved lobe per ``(θ_h, θ_d)`` bin (8 100 lookups instead
-    of 1.458 M for MERL), and only ``G``, ``1/(4 cos θ_i cos θ_o)``, the apparatus factor, the
-    full ``Q`` and the diffuse layer per cell. Cells at or below the horizon give 0.
+    bin (and the apparatus factor ``L(θ_d)²``), ``D`` per ``θ_h`` bin, the convolved lobe per
+    ``(θ_h, θ_d)`` bin (8 100 lookups instead of 1.458 M for MERL), and only ``G``,
+    ``1/(4 cos θ_i cos θ_o)``, the apparatus factor ``L(θ_i) L(θ_o)``, the full ``Q`` and the
+    diffuse layer per cell. Cells at or below the horizon give 0.
     ``schlick``: as in :func:`brdf`.
     """
     ch = _channels(params, config, grid.cos_h, schlick=schlick)
     terms = half_diff_terms(params, grid, config, schlick=schlick)
-    if config.apparatus:
-        # The apparatus factor is a per-cell weight too, but XLA fuses its computation into
+    if _apparatus_per_cell(config):
+        # The apparatus factor L(θ_i) L(θ_o) is a per-cell weight too, but XLA fuses its computation into
         # the unfolding gather below, which would compute it for every output bin (measured
         # 70 → 80 ms): the total is formed on the computed half and unfolded.
         hd = {k: v[:, :, None, :] for k, v in terms.items()}
