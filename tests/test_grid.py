@@ -3,6 +3,8 @@ the forward-mode rule of the shadowing term, and the fit's duplicate-solution te
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -224,13 +226,18 @@ FIT_CASES = [
         CONDUCTOR.replace(beta=0.12, p=1.2, c=2.6, e=0.7, m=3.0, rho_d=(0.01, 0.02, 0.005)),
         merl_protocol(),
     ),
+    # The protocol's plastic: a Lambertian body, so η_c is separable (one seed for η).
+    (
+        PLASTIC.replace(beta=0.1, p=0.7, c=2.4, e=0.6, m=3.0),
+        dataclasses.replace(merl_protocol(), material="plastic", conductor_floor=False),
+    ),
 ]
 
 
 @pytest.mark.parametrize(
     # The plastic compiles for ≈ 24 s (the conductor covers the same factor code): the slow set.
     "case",
-    [0, pytest.param(1, marks=pytest.mark.slow), 2, 3],
+    [0, pytest.param(1, marks=pytest.mark.slow), 2, 3, 4],
 )
 def test_factorised_normal_equations_match_jacfwd(conductor_data, case):
     """The fit's per-bin factorisation (factors of θ_d, θ_h and of both differentiated once per

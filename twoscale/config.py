@@ -196,6 +196,13 @@ class ModelConfig:
         return self.diffuse and (not self.is_conductor or self.conductor_floor)
 
     @property
+    def lambertian_body(self) -> bool:
+        """The diffuse layer is ``ρ_d/π`` alone (a conductor's floor; a plastic's body with
+        ``diffuse_fresnel=False``): it depends on no Fresnel term, nor on the luminance mean
+        ``η̄`` of the channels' η."""
+        return self.is_conductor or (self.material == "plastic" and not self.diffuse_fresnel)
+
+    @property
     def is_spectral(self) -> bool:
         """The wavelengths are not the three RGB ones: the model is evaluated spectrally."""
         return self.wavelengths != tuple(RGB_WAVELENGTHS)

@@ -174,7 +174,7 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar, schlick=None):
 
 def _lambertian_body(cfg: ModelConfig) -> bool:
     """Whether :func:`_diffuse` is ``ρ_d/π`` (a conductor's floor, a plastic's Lambertian body)."""
-    return cfg.is_conductor or (cfg.material == "plastic" and not cfg.diffuse_fresnel)
+    return cfg.lambertian_body
 
 
 def _luminance_weights(cfg: ModelConfig) -> np.ndarray:

@@ -250,14 +250,20 @@ class TwoScaleAdapter(AbstractAdapter):
     def separable_fields(self) -> tuple[str, ...]:
         """Per-channel fields whose element c changes output channel c only.
 
-        RGB configurations: a conductor's η and k (each channel is its own Fresnel term); ρ_d of
-        dielectrics. Not a dielectric's η: the diffuse layer depends on the luminance mean η̄ of
-        all channels. Spectral configurations mix wavelengths into RGB: none.
+        RGB configurations: a conductor's η and k (each channel is its own Fresnel term) and its
+        floor's ρ_d; a dielectric's ρ_d, and its η where the diffuse layer does not depend on
+        the luminance mean η̄ of all channels (no diffuse layer, or a Lambertian body: the MERL
+        protocol's plastic, whose passes then push 9 seeds instead of 11: a pass over 1.1 M cells
+        477 → 405 ms on the 2-core machine). Spectral configurations mix wavelengths into RGB:
+        none.
         """
-        if self.config.is_spectral:
+        cfg = self.config
+        if cfg.is_spectral:
             return ()
-        if self.config.material == "conductor":
-            return ("eta", "k", "rho_d") if self.config.has_diffuse else ("eta", "k")
+        if cfg.material == "conductor":
+            return ("eta", "k", "rho_d") if cfg.has_diffuse else ("eta", "k")
+        if not cfg.has_diffuse or cfg.lambertian_body:
+            return ("eta", "rho_d")
         return ("rho_d",)
 
     def evaluate(self, params, wi, wo):
