@@ -211,8 +211,20 @@ def _mitsuba_subprocess(sizes: Sizes):
     return r, r["note"]
 
 
-def _jacobian_time(repeats: int, stride: int):
-    """Normal equations ``(JᵀJ, Jᵀr, rᵀr)`` over all fitted cells, as the fit computes them."""
+def _protocol_configs() -> dict:
+    """The MERL protocol's two model configurations (what the default CLI fits), by name."""
+    from twoscale.fit.material_type import merl_protocol
+
+    conductor = merl_protocol()
+    return {
+        "plastic": dataclasses.replace(conductor, material="plastic", conductor_floor=False),
+        "conductor with its floor": conductor,
+    }
+
+
+def _jacobian_time(repeats: int, stride: int, config=None):
+    """Normal equations ``(JᵀJ, Jᵀr, rᵀr)`` over all fitted cells, as the fit computes them
+    (``config``: the model configuration; the reference conductor ``ModelConfig()`` by default)."""
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -228,7 +240,7 @@ def _jacobian_time(repeats: int, stride: int):
     cells = sel.fit.take(np.arange(0, len(sel.fit), stride))
     pairs = cl.pair_cells(cells)
     buffer, n_active = cl.pack(pairs)
-    adapter = adapter_for(twoscale.ModelConfig())
+    adapter = adapter_for(twoscale.ModelConfig() if config is None else config)
     _, p0 = adapter.starts(data_stats(np.asarray(data.values), np.asarray(data.valid)))[0]
     free, frozen = eqx.partition(adapter.to_unconstrained(p0), True)
     layout = rs.Layout.of(free)
@@ -434,6 +446,17 @@ def speed(sizes: Sizes, label: str = "") -> tuple[str, list[str]]:
         compile_=t_jac["compile"],
     )
     rows[-1][-1] = f"{_target('jacobian', jac)} (≤ 0.3 s)"
+    # The passes the default CLI's fits run: the MERL protocol's configurations (apparatus
+    # factor L(θ_d)² with its knee; the plastic's Lambertian body, the conductor's floor).
+    for name, cfg in _protocol_configs().items():
+        t_p, info_p = _jacobian_time(sizes.repeats, sizes.grid_stride, cfg)
+        row(
+            f"Same normal equations, the MERL protocol's {name} (what the default CLI fits: "
+            f"{info_p['params']} params, {info_p['seeds']} seeds)",
+            t_p,
+            sizes.grid_stride,
+            compile_=t_p["compile"],
+        )
     if sizes.fits:
         for sched, key in ((sizes.fit_schedule, "fit"), (sizes.preview_schedule, "preview")):
             r = common.run_worker(["--schedule", sched, "--repeats", str(sizes.fit_repeats)])
