@@ -213,12 +213,11 @@ def _mitsuba_subprocess(sizes: Sizes):
 
 def _protocol_configs() -> dict:
     """The MERL protocol's two model configurations (what the default CLI fits), by name."""
-    from twoscale.fit.material_type import merl_protocol
+    from twoscale.fit.material_type import resolve_configs
 
-    conductor = merl_protocol()
     return {
-        "plastic": dataclasses.replace(conductor, material="plastic", conductor_floor=False),
-        "conductor with its floor": conductor,
+        "plastic": resolve_configs(None, "plastic")[0],
+        "conductor with its floor": resolve_configs(None, "conductor")[0],
     }
 
 

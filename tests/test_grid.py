@@ -3,8 +3,6 @@ the forward-mode rule of the shadowing term, and the fit's duplicate-solution te
 
 from __future__ import annotations
 
-import dataclasses
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -17,7 +15,7 @@ from twoscale.fit.adapters import adapter_for
 from twoscale.fit.candidates import Candidate, same_solution
 from twoscale.fit.cells import pack, pair_cells, select_cells
 from twoscale.fit.evaluation import predict_cells
-from twoscale.fit.material_type import merl_protocol
+from twoscale.fit.material_type import merl_protocol, resolve_configs
 from twoscale.fit.residuals import Layout, Problem, normal_equations
 from twoscale.fit.synthetic import synthetic
 from twoscale.geometry import _dirs_from_half_diff
@@ -229,7 +227,7 @@ FIT_CASES = [
     # The protocol's plastic: a Lambertian body, so η_c is separable (one seed for η).
     (
         PLASTIC.replace(beta=0.1, p=0.7, c=2.4, e=0.6, m=3.0),
-        dataclasses.replace(merl_protocol(), material="plastic", conductor_floor=False),
+        resolve_configs(None, "plastic")[0],
     ),
 ]
 

@@ -149,7 +149,7 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar, schlick=None):
     e^{−√(3(1−ρ_d))}/(2π)]``, ``cos θ' = √(1 − sin²θ/η²)``, ``A = (1+F_dr)/(1−F_dr)``,
     ``F_dr = F_dr(η̄)``.
     """
-    if _lambertian_body(cfg):  # a Lambertian body (or floor)
+    if cfg.lambertian_body:  # a Lambertian body (or floor)
         return jnp.broadcast_to(rho_d / math.pi, jnp.broadcast_shapes(cos_i.shape, rho_d.shape))
     t_i = 1.0 - _coat_fresnel(cfg, cos_i, eta, schlick)
     t_o = 1.0 - _coat_fresnel(cfg, cos_o, eta, schlick)
@@ -170,11 +170,6 @@ def _diffuse(cfg: ModelConfig, cos_i, cos_o, eta, rho_d, eta_bar, schlick=None):
     sq = safe_sqrt(3.0 * (1.0 - rho_d))  # gradient 0 (not inf) at ρ_d = 1
     multiple = (1.0 + jnp.exp(-4.0 / 3.0 * a * sq)) * jnp.exp(-sq) / (2.0 * math.pi)
     return rho_d * t_i * t_o * (single + multiple)
-
-
-def _lambertian_body(cfg: ModelConfig) -> bool:
-    """Whether :func:`_diffuse` is ``ρ_d/π`` (a conductor's floor, a plastic's Lambertian body)."""
-    return cfg.lambertian_body
 
 
 def _luminance_weights(cfg: ModelConfig) -> np.ndarray:
@@ -480,7 +475,7 @@ def _apparatus_per_cell(cfg: ModelConfig) -> bool:
 
 def _apparatus_of_theta_d(ch: _Channels, cfg: ModelConfig, cos_d):
     """``L(θ_d)²`` (``apparatus_angles="theta_d"``), or None where it is not a ``θ_d`` factor."""
-    if not cfg.apparatus or _apparatus_per_cell(cfg):
+    if not (cfg.apparatus and cfg.apparatus_angles == "theta_d"):
         return None
     e, m = ch.par["e"], ch.par.get("m", PAPER_KNEE)
     return apparatus_weight(None, None, cos_d, e, m, "theta_d")
@@ -734,9 +729,9 @@ def brdf_grid(
     ch = _channels(params, config, grid.cos_h, schlick=schlick)
     terms = half_diff_terms(params, grid, config, schlick=schlick)
     if _apparatus_per_cell(config):
-        # The apparatus factor L(θ_i) L(θ_o) is a per-cell weight too, but XLA fuses its computation into
-        # the unfolding gather below, which would compute it for every output bin (measured
-        # 70 → 80 ms): the total is formed on the computed half and unfolded.
+        # The apparatus factor L(θ_i) L(θ_o) is a per-cell weight too, but XLA fuses its
+        # computation into the unfolding gather below, which would compute it for every output
+        # bin (measured 70 → 80 ms): the total is formed on the computed half and unfolded.
         hd = {k: v[:, :, None, :] for k, v in terms.items()}
         out = _cells_total(ch, hd, grid.cos_i, grid.cos_o, grid.phi, config)
         return jnp.take(out, grid.unfold, axis=2)
@@ -758,7 +753,7 @@ def brdf_grid(
     # XLA's CPU loops from vectorising along the cells.
     weights = {k: w[..., 0] if w.shape[-1] == 1 else w for k, w in weights.items()}
     # A Lambertian layer is ρ_d/π above the horizon: formed after the unfolding, not stored.
-    lambertian = config.has_diffuse and _lambertian_body(config)
+    lambertian = config.has_diffuse and config.lambertian_body
     if lambertian:
         weights["diffuse"] = above
     total = 0.0
