@@ -457,10 +457,11 @@ def test_choose_type_tie_goes_to_the_physical_type():
 def test_choose_type_a_conductor_without_the_measured_body_loses():
     """A conductor fit with the lower RMS loses to the plastic on a material whose diffuse body
     carries much of its light, whether it leaves the body out (it would render black with a
-    highlight) or makes it with its lobes (a conductor has no diffuse layer); the faint scatter
-    under a metal's highlight does not count."""
+    highlight) or makes it with its lobes (a conductor has no diffuse layer) unless those lobes
+    fit clearly better (a rough metal's tail); the faint scatter under a metal's highlight does
+    not count."""
     from twoscale import TwoScaleParams
-    from twoscale.fit.material_type import choose_type
+    from twoscale.fit.material_type import EVIDENCE_RTOL, choose_type
 
     cond = TwoScaleParams.conductor(0.01, 0.5, (1.0, 1.0, 1.0), (0.1, 0.1, 0.1))
     plastic = TwoScaleParams.plastic(0.01, 0.5, (1.1, 1.1, 1.1), (0.27, 0.03, 0.02))
@@ -471,9 +472,15 @@ def test_choose_type_a_conductor_without_the_measured_body_loses():
     chosen, reason = choose_type(best, body)
     assert chosen == "plastic" and "diffuse body" in reason
     # The conductor reproduces the floor with its lobes: still no diffuse layer, the plastic wins
-    # when its own layer reproduces the body...
-    chosen, reason = choose_type(best, {**body, "conductor": red * 0.9})
+    # when its own layer reproduces the body and the conductor's RMS is not lower by more than
+    # EVIDENCE_RTOL...
+    close = {"conductor": (0.10 / (1.0 + EVIDENCE_RTOL), cond), "plastic": (0.10, plastic)}
+    chosen, reason = choose_type(close, {**body, "conductor": red * 0.9})
     assert chosen == "plastic" and "no diffuse layer" in reason and "90%" in reason
+    # ...while lobes that make the floor and fit clearly better are a rough metal's (its tail
+    # is a floor too)...
+    chosen, reason = choose_type(best, {**body, "conductor": red * 0.9})
+    assert chosen == "conductor" and "rough metal" in reason and "1.43×" in reason
     # ...and not when it does not (then the lower RMS).
     assert choose_type(best, {**body, "conductor": red * 0.9, "plastic": red * 0.3})[0] == (
         "conductor"
@@ -628,6 +635,31 @@ def test_type_choice_on_synthetic_materials(material, monkeypatch):
     assert kept[other].material == other and kept[material].material == material
     assert res.type_selection["rms"][other] > res.type_selection["rms"][material]
     assert json.loads(json.dumps(res.type_selection))["params"] == res.type_selection["params"]
+
+
+def test_type_choice_on_a_rough_synthetic_conductor():
+    """A rough conductor of the model itself (β = 0.3, p = 0.5) puts a fifth of its light in the
+    far tail that the floor level counts as a diffuse body; its lobes make that floor and fit it
+    several times better than the plastic's Lambertian layer, so ``material="auto"`` types it a
+    conductor (the body rule gave it to the plastic, at 6.5× the conductor's RMS on the default
+    protocol, before its evidence guard)."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit.material_type import EVIDENCE_RTOL
+
+    true = TwoScaleParams.conductor(0.3, 0.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+    cfg = ModelConfig(material="conductor", diffraction=False, apparatus=True)
+    data = synthetic(true, cfg, noise=0.01, seed=6)
+    res = fit(
+        data,
+        config=ModelConfig(diffraction=False, apparatus=True),
+        material="auto",
+        schedule=[Stage(4096, 1, 40), Stage(8192, 1, 20)],
+    )
+    sel = res.type_selection
+    assert sel["chosen"] == "conductor" and "rough metal" in sel["reason"], sel
+    assert "floor carries" in sel["reason"]  # the body rule was the one that looked
+    assert sel["rms"]["plastic"] > (1.0 + EVIDENCE_RTOL) * sel["rms"]["conductor"]
+    assert res.rmse_log < 0.01
 
 
 def test_few_starts_let_a_measured_body_decide_the_type(tmp_path):
