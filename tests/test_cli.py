@@ -37,7 +37,16 @@ def files(tmp_path_factory):
     header.write_bytes(np.asarray([90, 90, 90], "<i4").tobytes() + b"\x00" * 64)
     empty = d / "empty.binary"
     merl.write(empty, np.zeros((90, 90, 180, 3)), np.zeros((90, 90, 180), bool))
-    return {"good": good, "short": short, "header": header, "empty": empty, "dir": d}
+    black = d / "black.binary"  # every cell valid and 0
+    merl.write(black, np.zeros((90, 90, 180, 3)))
+    return {
+        "good": good,
+        "short": short,
+        "header": header,
+        "empty": empty,
+        "black": black,
+        "dir": d,
+    }
 
 
 def _run_cli(args, cwd, extra_env=None):
@@ -112,6 +121,7 @@ def test_success_and_load_back(files, tmp_path, capsys):
         ("short", "not a valid MERL"),
         ("header", "header dimensions"),
         ("empty", "invalid"),
+        ("black", "every valid cell is 0"),
     ],
 )
 def test_bad_input_in_process(files, tmp_path, capsys, case, needle):
@@ -213,6 +223,24 @@ def test_merl_protocol_and_bound_warning(files, tmp_path, capsys):
     res = load_result(out / "params.json")
     assert res.config["apparatus"] is False and "e" not in res.std_errors
     assert res.warnings == []
+
+
+def test_implausible_albedo_warns(files, tmp_path, capsys):
+    """Values far above any material's (here 1,000× a GGX table's: not in 1/sr) fit with
+    exit 0 but a warning that names the albedo, in the log, on stderr and in params.json; the
+    same table at its own scale has none (test_merl_protocol_and_bound_warning)."""
+    data = merl.read(files["good"])
+    bright = tmp_path / "bright.binary"
+    merl.write(bright, np.asarray(data.values) * 1000.0, np.asarray(data.valid))
+    out = tmp_path / "out"
+    args = [str(bright), "--out", str(out), "--baseline", "ggx", "--preview", "--no-plots"]
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    res = load_result(out / "params.json")
+    lines = [w for w in res.warnings if "reflects more light than it receives" in w]
+    assert len(lines) == 1 and "albedo" in lines[0], res.warnings
+    assert f"warning: {lines[0]}" in err.splitlines(), err
 
 
 def test_compile_cache_folder_and_switch(tmp_path, monkeypatch):

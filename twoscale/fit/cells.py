@@ -90,7 +90,8 @@ def select_cells(data, *, max_theta_deg: float | None = None, convention: str = 
     RMSE always uses all valid cells.
 
     Raises:
-        ValueError: no valid cell (or none left after the angle cut), or a bad angle.
+        ValueError: no valid cell (or none left after the angle cut), every valid cell 0 in
+            every channel (a black table: nothing to fit), or a bad angle.
     """
     if max_theta_deg is not None and not 0.0 < max_theta_deg <= 90.0:
         raise ValueError(f"max_theta_deg must be in (0, 90], got {max_theta_deg}")
@@ -106,6 +107,11 @@ def select_cells(data, *, max_theta_deg: float | None = None, convention: str = 
     n_meas = int(valid.sum())
     if not keep.any():
         raise ValueError("no valid cell in the data (every cell is masked or below the horizon)")
+    if not np.any(rho[keep] > 0.0):
+        raise ValueError(
+            "every valid cell is 0 in every channel (nothing to fit: a table of zeros, or values "
+            "lost on the way to the file)"
+        )
     index = np.flatnonzero(keep)
     cells = Cells(wi[index], wo[index], rho[index], index)
     fit_cells = cells

@@ -30,6 +30,7 @@ from twoscale.fit.candidates import (
 )
 from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells, with_scale
 from twoscale.fit.evaluation import (
+    data_warnings,
     fit_warnings,
     predict_cells,
     rmse,
@@ -689,7 +690,7 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, selections, setting
         cov_info["note_subsample"] = (
             f"errors computed on the last stage's {stage_log[-1]['n_cells_used']}-cell subsample"
         )
-    warnings = fit_warnings(g, best, params, cov_info)
+    warnings = data_warnings(prep.stats) + fit_warnings(g, best, params, cov_info)
     valid = prep.selection.valid
     pred = predict_cells(g.adapter, params, valid)
     errs = rmse(pred, valid, prep.log_scale)
@@ -858,6 +859,8 @@ def fit(
         f"{prep.n_fit} cells fitted of {len(prep.selection.valid)} valid; metric "
         f"{settings.metric}; {len(settings.stages)} stages"
     )
+    for line in data_warnings(prep.stats):
+        say(f"warning: {line}")
     configs, preselection = _preselect_type(configs, prep, settings, say)
     # Phase 2: the candidates. Each configuration's solve is compiled in the background ahead
     # of its first use (solver.Warmup).

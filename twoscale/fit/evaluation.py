@@ -176,6 +176,27 @@ def by_name(group: Group, flat) -> dict:
 AT_BOUND_U = 6.9
 
 
+#: A measured table whose bihemispherical albedo (:func:`twoscale.merl.bihemispherical_albedo`)
+#: is above this in some channel reflects more light than it receives: an energy-conserving
+#: BRDF's is at most 1 (the 60 stand-ins': 0.017-0.46), and no model of the library can reach
+#: such data, so the fit is flagged (values not in 1/sr, a scale applied twice).
+ALBEDO_IMPLAUSIBLE = 1.5
+
+
+def data_warnings(stats) -> list[str]:
+    """One line per problem of the data that no fit can mend (see :data:`ALBEDO_IMPLAUSIBLE`)."""
+    if stats.albedo is None:
+        return []
+    albedo = np.asarray(stats.albedo, dtype=np.float64)
+    if not np.max(albedo) > ALBEDO_IMPLAUSIBLE:
+        return []
+    return [
+        f"the data reflects more light than it receives (albedo {np.max(albedo):.3g} in channel "
+        f"{int(np.argmax(albedo))}; at most 1 for a physical material): values not in 1/sr? "
+        "(MERL's files hold the raw values, scaled by the reader), the fit cannot match them"
+    ]
+
+
 def fit_warnings(group: Group, cand: Candidate, params, cov_info: dict) -> list[str]:
     """One line per problem of a usable fit: step limit, parameters at a bound, rank deficiency."""
     out = []
