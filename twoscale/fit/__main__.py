@@ -65,11 +65,11 @@ the CLI stops before fitting, exit status 2. Measured as above: 11-21 s on a fir
 the fit leaves the other outputs and prints a ``warning:`` line.
 
 Exit status: 0 success, also for a usable fit with a problem (a parameter at the end of its range,
-a rank-deficient Jacobian, the step limit reached, data whose albedo is above
-:data:`~twoscale.fit.evaluation.ALBEDO_IMPLAUSIBLE`): one ``warning:`` line each on stderr, and the
+a rank-deficient Jacobian, the step limit reached, data whose albedo is above 1.5,
+``twoscale.fit.evaluation.ALBEDO_IMPLAUSIBLE``): one ``warning:`` line each on stderr, and the
 same lines in ``params.json`` (``"warnings"``); 2 bad input (unreadable file, not a MERL file, no
-valid cell, every valid cell 0, bad option); 3 the fit failed (no start gave a finite fit, or no start made any
-progress); 1 unexpected internal error. Errors are one line on stderr, without a traceback
+valid cell, every valid cell 0, bad option); 3 the fit failed (no start gave a finite fit, or no
+start made any progress); 1 unexpected internal error. Errors are one line on stderr, without a traceback
 (``TWOSCALE_DEBUG=1`` shows it).
 """
 
