@@ -44,16 +44,39 @@ ROW_OF_LOG_PANELS = (0.85, 0.15, 0.6, 0.7, 0.06)
 SPHERES = (0.15, 0.15, 0.15, 0.6, 0.05)
 
 
+#: Inches a character of a figure title takes on average (matplotlib's default 12-point sans
+#: serif; measured on the spheres' titles): a longer title is broken in two (:func:`_wrap_title`).
+TITLE_CHAR_WIDTH = 0.09
+#: Inches each further line of a title adds to a fixed top margin.
+TITLE_LINE_HEIGHT = 0.22
+
+
+def _wrap_title(title: str, width_in: float) -> str:
+    """``title`` on two lines, broken after its first ``": "`` (else at the last space that
+    fits), when it is wider than the figure (a mixture's name made the spheres' overflow)."""
+    limit = int(width_in / TITLE_CHAR_WIDTH)
+    if len(title) <= limit or "\n" in title:
+        return title
+    cut = title.find(": ")
+    if 0 < cut < limit:
+        return title[: cut + 1] + "\n" + title[cut + 2 :]
+    cut = title.rfind(" ", 0, limit)
+    return title if cut <= 0 else title[:cut] + "\n" + title[cut + 1 :]
+
+
 def _save(fig, path, title: str = "", margins=None) -> Path:
-    """Title (if any), the layout (``margins``: ``(left, right, bottom, top)`` in inches and
-    the space between panels, else ``tight_layout``), write the PNG at 100 dpi."""
+    """Title (if any; broken in two when wider than the figure), the layout (``margins``:
+    ``(left, right, bottom, top)`` in inches and the space between panels, else
+    ``tight_layout``), write the PNG at 100 dpi."""
+    w, h = fig.get_size_inches()
+    title = _wrap_title(title, w) if title else title
     if title:
         fig.suptitle(title)
     if margins is None:
         fig.tight_layout()
     else:
         left, right, bottom, top, wspace = margins
-        w, h = fig.get_size_inches()
+        top += TITLE_LINE_HEIGHT * title.count("\n")
         fig.subplots_adjust(
             left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h, wspace=wspace
         )
