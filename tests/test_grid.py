@@ -179,6 +179,34 @@ def test_shadowing_rule_equals_forward_mode(correlated):
             np.testing.assert_allclose(d_got, d_want, rtol=1e-9, atol=1e-14)
 
 
+def test_shadowing_rule_under_multilinear_tables():
+    """Inside ``tables.interpolation(order=1)`` (the benchmark's speed/accuracy trade) G's
+    derivative along β and p is the plain forward mode of the multilinear tables' G (the
+    hand-written partials are for the cubic spline; they raised there, and a fit with
+    multilinear tables failed)."""
+    from twoscale import tables
+
+    cos_i = jnp.asarray([0.9, 0.5, 0.1, 1e-3])
+    cos_o = jnp.asarray([0.8, 0.2, 0.6, 0.05])
+    phi = jnp.asarray([0.3, 2.0, 3.1, 0.0])
+    static = ("tables", True)
+    x = (jnp.float64(0.3), jnp.float64(1.7))
+    with tables.interpolation(order=1):
+        got, d_got = jax.jvp(
+            lambda b, q: model._shadowing_g(static, b, q, cos_i, cos_o, phi), x, (1.0, -0.5)
+        )
+        _, d_want = jax.jvp(
+            lambda b, q: model._g_of_cells(static, b, q, cos_i, cos_o, phi), x, (1.0, -0.5)
+        )
+        want = model._g_of_cells(static, *x, cos_i, cos_o, phi)
+    with tables.interpolation(order=3):
+        cubic = model._shadowing_g(static, *x, cos_i, cos_o, phi)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(d_got, d_want, rtol=1e-12, atol=1e-15)
+    assert np.all(np.isfinite(np.asarray(d_got))) and np.any(np.asarray(d_got) != 0.0)
+    assert not np.array_equal(np.asarray(got), np.asarray(cubic))  # the other interpolation
+
+
 def test_shadowing_rule_matches_finite_differences():
     """The custom forward rule of G: d/dβ, d/dp and d/d(directions) against central differences."""
     cos_i = jnp.asarray([0.9, 0.5, 0.1, 1e-3])

@@ -40,7 +40,16 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from twoscale import convolution, distribution, fresnel, geometry, psd, shadowing, spectral
+from twoscale import (
+    convolution,
+    distribution,
+    fresnel,
+    geometry,
+    psd,
+    shadowing,
+    spectral,
+    tables,
+)
 from twoscale._numerics import float_dtype, gauss_legendre, safe_log, safe_sqrt, tiny
 from twoscale.config import ModelConfig
 from twoscale.params import TwoScaleParams
@@ -264,11 +273,13 @@ def _shadowing_g_jvp(static, primals, tangents):
     Measured (2-core machine, the fit's normal equations on 1.1 M cells of a synthetic
     conductor, both rules compiled in one process and timed alternately, 8 rounds twice):
     median 406 → 348 ms and 344 → 308 ms, the same normal equations to 1.5e-16.
-    Otherwise the generic rule (:func:`_elementwise_jvp`)."""
+    Otherwise the generic rule (:func:`_elementwise_jvp`), also for tables built with another
+    interpolation than the cubic one the partials are written for
+    (:func:`twoscale.tables.interpolation`)."""
     path, correlated = static
     beta, p, cos_i, cos_o, phi = primals
     t_beta, t_p, *rest = tangents
-    if path != "tables" or not all(_is_zero(t) for t in rest):
+    if path != "tables" or tables.interpolation_order() != 3 or not all(_is_zero(t) for t in rest):
         return _elementwise_rule(_g_of_cells)(static, primals, tangents)
     lam_i, di_beta, di_p = shadowing.lambda_partials(cos_i, beta, p)
     lam_o, do_beta, do_p = shadowing.lambda_partials(cos_o, beta, p)

@@ -503,6 +503,11 @@ def clear_caches() -> None:
     load_table.cache_clear()
 
 
+def interpolation_order() -> int:
+    """The order the tables' splines are built with now: 3, or what :func:`interpolation` set."""
+    return _SETTINGS[0]
+
+
 @contextlib.contextmanager
 def interpolation(order: int = 3, stride: int = 1):
     """Study hook: while active, build the tables' main splines with ``order`` on every
