@@ -60,7 +60,13 @@ def main(argv=None) -> int:
     ap.add_argument("--order", type=int, default=3)
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--wavelengths", type=int, default=0, help="0: RGB")
-    ap.add_argument("--config", default="conductor", help="conductor | auto")
+    ap.add_argument(
+        "--config",
+        default="conductor",
+        choices=("conductor", "auto", "protocol"),
+        help="conductor: the reference model, a conductor; auto: the reference model, the type "
+        "chosen by the fit; protocol: the MERL protocol as the CLI fits it (type chosen)",
+    )
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     import twoscale
@@ -73,6 +79,8 @@ def main(argv=None) -> int:
         )
     data = synthetic_material() if args.material == "synthetic" else nbrdf_material(args.material)
     material = "conductor" if args.config == "conductor" else "auto"
+    if args.config == "protocol":
+        cfg = None  # twoscale.fit's default: the MERL protocol (merl_protocol)
     times, result = [], None
     with table_variant(args.order, args.stride):
         for _ in range(args.repeats + 1):

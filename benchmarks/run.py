@@ -710,7 +710,7 @@ def trade(sizes: Sizes) -> str:
                         "--material",
                         mat,
                         "--config",
-                        "auto",
+                        "protocol",
                         *extra,
                     ]
                 )
@@ -727,7 +727,8 @@ def trade(sizes: Sizes) -> str:
                 )
         text += (
             f"\n## Fitted RMSE (Neural-BRDF stand-ins, `{sizes.preview_schedule}` schedule, "
-            "material type auto)\n\nRMSE of the log metric on all valid cells; change relative to "
+            "the MERL protocol as the CLI fits it, material type auto)\n\nRMSE of the log "
+            "metric on all valid cells; change relative to "
             "the cubic float64 tables. Exact path and float32 are not fitted: the exact path is "
             "far too slow for fits, and `twoscale.fit` requires float64.\n\n"
             + table(
