@@ -69,8 +69,8 @@ a rank-deficient Jacobian, the step limit reached, data whose albedo is above 1.
 ``twoscale.fit.evaluation.ALBEDO_IMPLAUSIBLE``): one ``warning:`` line each on stderr, and the
 same lines in ``params.json`` (``"warnings"``); 2 bad input (unreadable file, not a MERL file, no
 valid cell, every valid cell 0, bad option); 3 the fit failed (no start gave a finite fit, or no
-start made any progress); 1 unexpected internal error. Errors are one line on stderr, without a traceback
-(``TWOSCALE_DEBUG=1`` shows it).
+start made any progress); 1 unexpected internal error. Errors are one line on stderr, without a
+traceback (``TWOSCALE_DEBUG=1`` shows it).
 """
 
 from __future__ import annotations
