@@ -158,10 +158,10 @@ def write_render(
         ax.imshow(img, interpolation="nearest")
         ax.set_title(name)
         ax.axis("off")
-    # Two lines: a long material name and the conditions on one overflowed the picture.
+    # Broken after the name by _save when wider than the picture (plots._wrap_title).
     title = (
-        f"{getattr(data, 'name', '') or 'data'}\n"
-        f"distant light at {light_deg:g}° from the view (render: no apparatus factor)"
+        f"{getattr(data, 'name', '') or 'data'}: distant light at {light_deg:g}° from the view "
+        "(render: no apparatus factor)"
     )
     _save(fig, Path(path), title)
     return {"seconds": seconds, "spp": spp, "size": size, "variant": variant}
