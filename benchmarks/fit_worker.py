@@ -68,6 +68,10 @@ def main(argv=None) -> int:
         "chosen by the fit; protocol: the MERL protocol as the CLI fits it (type chosen)",
     )
     args = ap.parse_args(argv)
+    if args.config == "protocol" and args.wavelengths:
+        # The MERL protocol is an RGB configuration chosen by the fit; a spectral one is not
+        # part of it, and silently fitting RGB would mislabel the timing.
+        ap.error("--wavelengths needs --config conductor or auto (the protocol is RGB)")
     jax.config.update("jax_enable_x64", True)
     import twoscale
     from benchmarks.variants import table_variant

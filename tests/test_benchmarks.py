@@ -60,3 +60,13 @@ def test_ggx_reference_peak_value():
     a, f0, rho = reference.ALPHA, np.array(reference.F0), np.array(reference.RHO_D)
     np.testing.assert_allclose(out[0], f0 / (4 * np.pi * a * a) + rho / np.pi, rtol=1e-12)
     np.testing.assert_array_equal(out[1], 0.0)
+
+
+def test_fit_worker_refuses_a_spectral_protocol(capsys):
+    """The MERL protocol is RGB: ``--wavelengths`` with it is an error, not a silent RGB fit."""
+    from benchmarks import fit_worker
+
+    with pytest.raises(SystemExit) as exc:
+        fit_worker.main(["--config", "protocol", "--wavelengths", "8"])
+    assert exc.value.code == 2
+    assert "--wavelengths needs --config conductor or auto" in capsys.readouterr().err
