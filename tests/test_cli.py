@@ -156,6 +156,17 @@ def test_bad_options(files, tmp_path, capsys):
     rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--fix", "alpha"])
     assert rc == EXIT_INPUT
     _assert_one_line_error(capsys.readouterr().err, "NAME=VALUE")
+    # Out of range or not finite: exit 2 before any work (p = 100 fitted at p = 5 with exit 0,
+    # p = nan ran to exit 3).
+    for held, needle in (
+        (["p=100"], "outside its valid range [0.2, 5]"),
+        (["p=nan"], "not a finite number"),
+        (["p=1", "--fix", "p=2"], "--fix p given twice"),
+    ):
+        rc = main([str(files["good"]), "--out", str(tmp_path / "o"), "--fix", *held])
+        assert rc == EXIT_INPUT
+        _assert_one_line_error(capsys.readouterr().err, needle)
+    assert not (tmp_path / "o").exists()
     taken = tmp_path / "a-file"
     taken.write_text("x")
     rc = main([str(files["good"]), "--out", str(taken), "--baseline", "ggx"])

@@ -268,6 +268,48 @@ def test_fixed_parameter_is_held(ct_noisy):
         fit(ct_noisy, config=CT, schedule="preview", fixed={"beta": 0.1})
 
 
+@pytest.mark.parametrize(
+    "config, fixed, needle",
+    [
+        (None, {"p": 100.0}, r"cannot fix p = 100: outside its valid range \[0.2, 5\]"),
+        (None, {"beta": 0.0}, r"cannot fix beta = 0: outside its valid range"),
+        (None, {"p": float("nan")}, "not a finite number"),
+        (None, {"eta": [1.5, 1.5]}, r"give 1 or 3 value\(s\), got 2"),
+        (None, {"eta": 0.5}, r"outside its valid range \[1, 4\] \(plastic\)"),
+        # The names of every stage's model, not only those of the first (diffraction-off) stage.
+        (None, {"foo": 1.0}, "parameters of this fit are beta, p, sigma_s, b, c"),
+        (None, {"k": 0.5, "rho_d": 0.1}, "no material type has them all"),
+        (CT, {"f0": 2.0}, r"cannot fix f0 = 2: outside its valid range \[0, 1\]"),
+    ],
+)
+def test_bad_fixed_values_are_refused_before_any_work(ct_noisy, config, fixed, needle):
+    """A held value the fit could not hold as given is an error naming it, not a clamp (p = 100
+    was fitted at p = 5, β = 0 at 1e-3, both with exit 0) nor a fit of NaNs."""
+    with pytest.raises(ValueError, match=needle):
+        fit(ct_noisy, config=config, fixed=fixed)
+
+
+def test_a_held_parameter_of_one_type_fits_that_type_only():
+    from twoscale.fit.driver import _types_holding
+    from twoscale.fit.material_type import merl_protocol
+
+    configs = [
+        dataclasses.replace(merl_protocol(), material=m, conductor_floor=False)
+        for m in ("conductor", "plastic")
+    ]
+    said = []
+    kept = _types_holding(configs, {"k": 0.5}, said.append)
+    assert [c.material for c in kept] == ["conductor"]
+    assert said == [
+        "the held k leaves out the plastic type (it has no such parameter): fitting the "
+        "conductor only"
+    ]
+    assert [c.material for c in _types_holding(configs, {"rho_d": 0.1}, said.append)] == [
+        "plastic"
+    ]
+    assert _types_holding(configs, {"p": 1.0}, said.append) == configs
+
+
 def test_result_record_roundtrip(ct_noisy, tmp_path):
     res = fit(ct_noisy, config=CT, schedule=[Stage(4096, 1, 40)], metric="linear")
     path = res.save(tmp_path / "params.json")

@@ -206,7 +206,9 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="hold a parameter fixed, e.g. --fix p=1 or --fix eta=1.5,1.5,1.5 (repeatable)",
+        help="hold a parameter fixed, e.g. --fix p=1 or --fix eta=1.5,1.5,1.5 (repeatable; "
+        "inside the parameter's valid range; with --material auto, k or rho_d fits only the "
+        "type that has it)",
     )
     ap.add_argument("--solver", choices=("lm", "dogleg"), default="lm")
     ap.add_argument("--seed", type=int, default=0, help="seed of the subsampling")
@@ -270,6 +272,8 @@ def _parse_fixed(items) -> dict:
             vals = [float(v) for v in value.split(",")]
         except ValueError:
             raise InputError(f"--fix {name}: not a number: {value!r}") from None
+        if name.strip() in out:
+            raise InputError(f"--fix {name.strip()} given twice")
         out[name.strip()] = vals[0] if len(vals) == 1 else vals
     return out
 

@@ -29,9 +29,17 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from twoscale.baselines import CookTorranceConfig, CookTorranceParams, cook_torrance
+from twoscale.baselines import (
+    ALPHA_RANGE,
+    E_MAX,
+    M_BOUND,
+    CookTorranceConfig,
+    CookTorranceParams,
+    cook_torrance,
+)
 from twoscale.fit.starts import DataStats, conductor_k_for_f0, dielectric_eta_for_f0
 from twoscale.model import PAPER_KNEE
+from twoscale.params import CHANNEL_FIELDS, bounds_for
 
 # Start grid of docs/model.md §8.
 START_P = (0.5, 1.0, 2.0)
@@ -85,6 +93,16 @@ class AbstractAdapter(eqx.Module):
     def separable_fields(self) -> tuple[str, ...]:
         """Per-channel fields whose element c changes output channel c only (Jacobian colouring)."""
 
+    @abc.abstractmethod
+    def field_range(self, name: str) -> tuple[float, float]:
+        """The closed valid range ``(lo, hi)`` of field ``name`` (what its unconstrained map
+        reaches; a held value outside it would be clamped)."""
+
+    @abc.abstractmethod
+    def field_sizes(self, name: str) -> tuple[int, ...]:
+        """How many values field ``name`` may be given (1: shared; per channel also the count
+        of channels)."""
+
     @property
     def diffraction(self) -> bool:
         """The model has a diffraction lobe (so it has a diffraction-off special case)."""
@@ -137,6 +155,18 @@ class CookTorranceAdapter(AbstractAdapter):
 
     #: Per-channel fields whose element c changes output channel c only (Jacobian colouring).
     separable_fields: ClassVar[tuple[str, ...]] = ("f0", "rho_d")
+
+    def field_range(self, name: str) -> tuple[float, float]:
+        return {
+            "alpha": ALPHA_RANGE,
+            "f0": (0.0, 1.0),
+            "rho_d": (0.0, 1.0),
+            "e": (0.0, E_MAX),
+            "m": (M_BOUND.lo, M_BOUND.hi),
+        }[name]
+
+    def field_sizes(self, name: str) -> tuple[int, ...]:
+        return (1, 3) if name in ("f0", "rho_d") else (1,)
 
     def evaluate(self, params, wi, wo):
         return cook_torrance(params, wi, wo, self.config)
@@ -245,6 +275,15 @@ class TwoScaleAdapter(AbstractAdapter):
     @property
     def field_names(self) -> tuple[str, ...]:
         return tuple(self.config.param_names)
+
+    def field_range(self, name: str) -> tuple[float, float]:
+        b = bounds_for(name, self.config.material)
+        return b.lo, b.hi
+
+    def field_sizes(self, name: str) -> tuple[int, ...]:
+        if name in CHANNEL_FIELDS:
+            return tuple(sorted({1, self.config.n_wavelengths}))
+        return (1,)
 
     @property
     def separable_fields(self) -> tuple[str, ...]:

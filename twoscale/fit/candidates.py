@@ -205,6 +205,45 @@ def inside_bounds(free):
     )
 
 
+def check_fixed(fixed: dict, configs) -> None:
+    """Refuse held values that no stage of the fit could hold as given, before any work.
+
+    ``configs``: every configuration the fit may use (the types compared, their special cases
+    and floors). A name must be a parameter of at least one of them; its values finite, one or
+    one per channel, and inside the valid range of every configuration that uses it (a value
+    outside would be clamped to the range's end without a word: ``p = 100`` fitted at
+    ``p = 5``, ``β = 0`` at ``β = 1e-3``). Raises ``ValueError`` naming the parameter.
+    """
+    adapters = [adapter_for(c) for c in configs]
+    names = list(dict.fromkeys(n for a in adapters for n in a.field_names))
+    for name, value in fixed.items():
+        users = [a for a in adapters if name in a.field_names]
+        if not users:
+            raise ValueError(f"cannot fix {name!r}: parameters of this fit are {', '.join(names)}")
+        try:
+            v = np.asarray(value, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"cannot fix {name}: not a number or a list of numbers: {value!r}"
+            ) from None
+        shown = ", ".join(f"{x:g}" for x in v)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"cannot fix {name} = {shown}: not a finite number")
+        for a in users:
+            sizes = a.field_sizes(name)
+            if v.size not in sizes:
+                counts = " or ".join(str(n) for n in sizes)
+                raise ValueError(
+                    f"cannot fix {name}: give {counts} value(s), got {v.size} ({shown})"
+                )
+            lo, hi = a.field_range(name)
+            if np.any(v < lo) or np.any(v > hi):
+                raise ValueError(
+                    f"cannot fix {name} = {shown}: outside its valid range [{lo:g}, {hi:g}]"
+                    f" ({a.material})"
+                )
+
+
 def apply_fixed(params, fixed: dict, adapter):
     """Set the fixed fields (physical values) and return (params, spec of free leaves)."""
     spec = jax.tree_util.tree_map(lambda _: True, params)

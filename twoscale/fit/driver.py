@@ -22,6 +22,7 @@ from twoscale.fit import solver as _solver
 from twoscale.fit.adapters import START_E, START_M, adapter_for, compile_key, floor_albedo_start
 from twoscale.fit.candidates import (
     NESTED_GRID,
+    check_fixed,
     cross_seed,
     keep_best,
     make_candidates,
@@ -334,6 +335,31 @@ def _split_floors(configs: list) -> tuple[list, dict]:
             cfg = bare
         out.append(cfg)
     return out, floors
+
+
+def _types_holding(configs: list, fixed: dict, say) -> list:
+    """The material types to compare that have every held parameter: holding ``k`` (a
+    conductor's) or ``ρ_d`` (a plastic's body; a conductor's floor only after the type choice)
+    fits those types only, and says so. :func:`~twoscale.fit.candidates.check_fixed` has
+    refused names that no type has."""
+    if len(configs) < 2 or not fixed:
+        return configs
+    kept = [c for c in configs if set(fixed) <= set(adapter_for(c).field_names)]
+    if not kept:  # e.g. k and rho_d together: no single type has both
+        raise ValueError(
+            f"cannot fix {', '.join(sorted(fixed))} together: no material type has them all "
+            "(pass --material / material=)"
+        )
+    if len(kept) < len(configs):
+        left = sorted(
+            {adapter_for(c).material for c in configs} - {adapter_for(c).material for c in kept}
+        )
+        chosen = sorted({adapter_for(c).material for c in kept})
+        say(
+            f"the held {', '.join(sorted(fixed))} leaves out the {', '.join(left)} type "
+            f"(it has no such parameter): fitting the {', '.join(chosen)} only"
+        )
+    return kept
 
 
 def _floor_converter(floors: dict, prep: _Prepared, settings, say, warm):
@@ -850,6 +876,8 @@ def fit(
     protocol = config is None or (isinstance(config, str) and config == "auto")
     configs, fresnel_mode = resolve_fresnel(configs, fresnel, protocol)
     configs, floors = _split_floors(configs)
+    check_fixed(settings.fixed, [*configs, *floors.values()])
+    configs = _types_holding(configs, settings.fixed, say)
     settings = dataclasses.replace(settings, fresnel=fresnel_mode or fresnel)
     if not isinstance(settings.starts, str) and len(configs) > 1:
         raise ValueError("explicit starts need a single material type (pass material=...)")
