@@ -289,6 +289,11 @@ def test_bad_fixed_values_are_refused_before_any_work(ct_noisy, config, fixed, n
         fit(ct_noisy, config=config, fixed=fixed)
 
 
+def test_data_that_is_not_merl_data_is_a_type_error(ct_noisy):
+    with pytest.raises(TypeError, match="needs a twoscale.merl.MerlData .* got ndarray"):
+        fit(np.asarray(ct_noisy.values), config=CT)
+
+
 def test_a_held_parameter_of_one_type_fits_that_type_only():
     from twoscale.fit.driver import _types_holding
     from twoscale.fit.material_type import merl_protocol

@@ -845,7 +845,8 @@ def fit(
         (step limit reached, a parameter at the end of its range, a rank-deficient Jacobian).
 
     Raises:
-        ValueError: bad arguments or no valid data. :class:`FitError`: no start gave a finite fit.
+        ValueError: bad arguments or no valid data. TypeError: ``data`` not a ``MerlData``.
+        :class:`FitError`: no start gave a finite fit.
 
     Compilation: each configuration's solve is compiled in a background thread ahead of its
     first use, and while the last stage runs, the evaluation that pictures and the albedo table
@@ -853,6 +854,14 @@ def fit(
     on 2 cores the first time in a process or compilation cache).
     """
     t0 = time.perf_counter()
+    from twoscale.merl import MerlData
+
+    if not isinstance(data, MerlData):
+        raise TypeError(
+            "twoscale.fit needs a twoscale.merl.MerlData (twoscale.merl.read(path), or "
+            "MerlData(values, valid) from a (90, 90, 180, 3) array in 1/sr and a (90, 90, 180) "
+            f"validity mask), got {type(data).__name__}"
+        )
     if not jax.config.jax_enable_x64:
         raise RuntimeError(
             "twoscale.fit needs float64: call jax.config.update('jax_enable_x64', True) first"
