@@ -309,9 +309,7 @@ def test_a_held_parameter_of_one_type_fits_that_type_only():
         "the held k leaves out the plastic type (it has no such parameter): fitting the "
         "conductor only"
     ]
-    assert [c.material for c in _types_holding(configs, {"rho_d": 0.1}, said.append)] == [
-        "plastic"
-    ]
+    assert [c.material for c in _types_holding(configs, {"rho_d": 0.1}, said.append)] == ["plastic"]
     assert _types_holding(configs, {"p": 1.0}, said.append) == configs
 
 
