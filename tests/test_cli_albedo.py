@@ -136,3 +136,45 @@ def test_table_through_the_pictures_evaluation():
         assert got["channels"] == ref["channels"] and got["quadrature"] == ref["quadrature"]
         np.testing.assert_allclose(got["values"], ref["values"], rtol=1e-12, atol=0)
         assert np.all(np.asarray(got["values"]) > 0.01)
+        # The lobes apart (what the CLI passes): the same table, and its last row by lobe.
+        by_lobe = albedo_table_entry(
+            params,
+            config,
+            n=32,
+            evaluate_lobes=material_evaluator(adapter_for(config), params, lobes=True),
+        )
+        np.testing.assert_allclose(by_lobe["values"], ref["values"], rtol=1e-12, atol=0)
+        at_normal = by_lobe["lobes_at_normal"]
+        assert at_normal["cos_theta_i"] == 1.0
+        parts = np.asarray([at_normal[n] for n in ("specular", "diffraction", "diffuse")])
+        np.testing.assert_allclose(parts.sum(axis=0), by_lobe["values"][-1], rtol=1e-12)
+        assert np.all(parts[:2] > 0.0)  # both lobes of these materials carry light
+        assert "lobes_at_normal" not in ref
+
+
+@pytest.mark.parametrize("sigma_s, faint", [(EXAMPLE["sigma_s"], False), (1e-4, True)])
+def test_summary_gives_the_light_per_lobe(sigma_s, faint):
+    """The summary prints each lobe's albedo at normal incidence and says when the diffraction
+    lobe is too faint for its b and c to mean anything (σ_s → 0: a fit of gold-metallic-paint
+    printed c = 1.03 ± 6.5 without a word on why)."""
+    from twoscale.fit.adapters import adapter_for
+    from twoscale.fit.evaluation import material_evaluator
+    from twoscale.fit.record import albedo_table_entry
+
+    params = PARAMS.replace(sigma_s=sigma_s)
+    rec = _record(params)
+    rec.albedo_table = albedo_table_entry(
+        params,
+        CONFIG,
+        n=8,
+        evaluate_lobes=material_evaluator(adapter_for(CONFIG), params, lobes=True),
+    )
+    lines = rec.summary().splitlines()
+    light = [ln for ln in lines if "light per lobe at normal incidence" in ln]
+    assert len(light) == 1 and "specular [" in light[0] and "diffraction [" in light[0]
+    assert "diffuse" not in light[0]  # the conductor has no floor here: no such lobe
+    note = [ln for ln in lines if "b and c are not determined" in ln]
+    assert len(note) == (1 if faint else 0), lines
+    # A record without the split (older records, --no-albedo) prints neither.
+    rec.albedo_table = None
+    assert not any("light per lobe" in ln for ln in rec.summary().splitlines())

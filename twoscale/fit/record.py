@@ -13,7 +13,11 @@ material (written by ``python -m twoscale.fit`` unless ``--no-albedo``; :func:`a
         "apparatus": false,                  # the material, without MERL's apparatus factor
         "channels": ["R", "G", "B"],         # columns (one per wavelength in µm if spectral)
         "quadrature": {"n_theta": 8, "n_phi": 16},
-        "values": [[a_R, a_G, a_B], ...]     # n rows: a(θ_i) = ∫ ρ cos θ_o dω_o
+        "values": [[a_R, a_G, a_B], ...],    # n rows: a(θ_i) = ∫ ρ cos θ_o dω_o
+        "lobes_at_normal": {                 # the last row (cos θ_i = 1) split by lobe
+            "cos_theta_i": 1.0,
+            "specular": [...], "diffraction": [...], "diffuse": [...]   # 0 for a lobe off
+        }
     }
 
 Row ``n−1`` is normal incidence, row 0 the most grazing (the convention of
@@ -22,7 +26,10 @@ float64 with ``n_phi = 16`` nodes in φ_h instead of :func:`twoscale.albedo`'s 3
 materials (β from 0.001 to 0.6, conductors, plastics, strong diffraction) this differs from the
 default quadrature by at most 2e-5 and costs half as much. Records without the entry (older ones,
 baselines, ``--no-albedo``) load with ``FitResult.albedo_table = None``;
-:meth:`FitResult.albedo_values` gives the table as an ``(n, C)`` array.
+:meth:`FitResult.albedo_values` gives the table as an ``(n, C)`` array. The summary prints the
+light per lobe at normal incidence, and says when the diffraction lobe carries less than
+:data:`NEGLIGIBLE_LOBE` of it in every channel: ``σ_s ≈ 0``, and ``b`` and ``c`` then shape
+nothing the data can see (their standard errors are as large as their ranges).
 """
 
 from __future__ import annotations
@@ -279,8 +286,39 @@ class FitResult:
                 continue
             se = self.std_errors.get(name)
             lines.append(f"  {name:8s} = {_fmt(value)}" + (f"  ± {_fmt(se)}" if se else ""))
+        lines += _lobe_lines(self.albedo_table, self.params)
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+
+#: A lobe is part of the fitted model when its parameters are (a switched-off lobe has none).
+_LOBE_FIELD = {"specular": "beta", "diffraction": "sigma_s", "diffuse": "rho_d"}
+
+
+def _lobe_lines(albedo_table, params) -> list[str]:
+    """The summary's lines on the light each lobe carries at normal incidence (from the albedo
+    table's ``"lobes_at_normal"``, when it has one), and a note when the diffraction lobe is too
+    faint to matter: ``σ_s ≈ 0`` then leaves its ``b`` and ``c`` undetermined."""
+    import numpy as np
+
+    lobes = (albedo_table or {}).get("lobes_at_normal")
+    if not lobes:
+        return []
+    used = {
+        n: [float(x) for x in v]
+        for n, v in lobes.items()
+        if n in _LOBE_FIELD and getattr(params, _LOBE_FIELD[n], None) is not None
+    }
+    parts = "; ".join(f"{n} {_fmt(v)}" for n, v in used.items())
+    out = [f"  light per lobe at normal incidence (directional albedo per channel): {parts}"]
+    total = np.sum([v for v in used.values()], axis=0)
+    faint = used.get("diffraction")
+    if faint is not None and np.all(np.asarray(faint) <= NEGLIGIBLE_LOBE * total):
+        out.append(
+            f"  the diffraction lobe carries < {NEGLIGIBLE_LOBE:.1%} of the light in every "
+            "channel (σ_s ≈ 0): b and c are not determined by these data (see their errors)"
+        )
+    return out
 
 
 def _fmt(v) -> str:
@@ -339,7 +377,14 @@ def result_from_dict(d: dict) -> FitResult:
     )
 
 
-def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate=None) -> dict:
+#: A lobe carrying less than this share of the light at normal incidence in every channel is
+#: called negligible in the summary (its own parameters then hardly touch the fit).
+NEGLIGIBLE_LOBE = 1e-3
+
+
+def albedo_table_entry(
+    params, config, n: int = ALBEDO_ROWS, evaluate=None, evaluate_lobes=None
+) -> dict:
     """The ``"albedo_table"`` entry of ``params.json`` (layout in the module doc) for two-scale
     parameters and their :class:`~twoscale.ModelConfig`.
 
@@ -351,7 +396,10 @@ def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate=None) -> d
     is the BRDF used at the same quadrature nodes instead: the CLI passes the evaluation its
     pictures already compiled (:func:`twoscale.fit.evaluation.material_evaluator`), which saves
     compiling :func:`twoscale.albedo` (≈ 3 s on an empty compilation cache). Same sum, same
-    nodes.
+    nodes. ``evaluate_lobes(wi, wo) -> (N, L, C)``, the lobes of
+    :data:`~twoscale.fit.adapters.LOBES` apart, instead: the entry then also holds
+    ``"lobes_at_normal"``, each lobe's directional albedo at ``cos θ_i = 1`` (the table's last
+    row split by lobe), which the summary prints.
     """
     import jax
     import jax.numpy as jnp
@@ -363,15 +411,25 @@ def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate=None) -> d
     p = params.for_config(cfg)
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     cos_i = jnp.asarray((np.arange(n) + 1.0) / n, dtype)
-    if evaluate is None:
+    per_lobe = None
+    if evaluate is None and evaluate_lobes is None:
         values = np.asarray(model.albedo(p, cos_i, cfg, *ALBEDO_QUADRATURE), np.float64)
     else:
         nodes = jax.jit(model.albedo_nodes, static_argnums=(1, 2))
         wi, wo, jac = (np.asarray(a) for a in nodes(cos_i[:, None], *ALBEDO_QUADRATURE))
         wi = np.broadcast_to(wi, wo.shape)
-        rho = np.asarray(evaluate(wi.reshape(-1, 3), wo.reshape(-1, 3)), np.float64)
-        rho = rho.reshape(*jac.shape, -1)
-        values = np.sum(rho * jac[..., None], axis=(-3, -2))
+        fn = evaluate if evaluate_lobes is None else evaluate_lobes
+        rho = np.asarray(fn(wi.reshape(-1, 3), wo.reshape(-1, 3)), np.float64)
+        if evaluate_lobes is None:
+            rho = rho.reshape(*jac.shape, -1)
+            values = np.sum(rho * jac[..., None], axis=(-3, -2))
+        else:
+            from twoscale.fit.adapters import LOBES
+
+            rho = rho.reshape(*jac.shape, len(LOBES), -1)
+            lobe_values = np.sum(rho * jac[..., None, None], axis=(-4, -3))  # (n, L, C)
+            values = lobe_values.sum(axis=-2)
+            per_lobe = {"cos_theta_i": 1.0} | dict(zip(LOBES, lobe_values[-1], strict=True))
     if not cfg.is_spectral or cfg.spectral_output == "rgb":
         channels = ["R", "G", "B"]
     else:
@@ -385,6 +443,7 @@ def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate=None) -> d
             "quadrature": dict(zip(("n_theta", "n_phi"), ALBEDO_QUADRATURE, strict=True)),
             "values": values,
         }
+        | ({} if per_lobe is None else {"lobes_at_normal": per_lobe})
     )
 
 
