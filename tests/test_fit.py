@@ -1099,3 +1099,26 @@ def test_start_reaching_a_finished_minimum_stops_early(ct_noisy):
     assert alone["status"].startswith("converged") and second["steps"] <= alone["steps"]
     assert alone["rms"] == pytest.approx(second["rms"], rel=1e-5)
     assert res.converged and res.rmse_fit == first["rms"]
+
+
+def test_floor_warning_flags_a_visibly_wrong_body():
+    """The fitted model's diffuse floor against the measured one (per channel, where the body is
+    visible): red-specular-plastic fitted with ``--metric linear`` came out ρ_d = 1, 1, 0, a
+    yellow sphere for a red one, with exit 0 and no word."""
+    from twoscale.fit.evaluation import FLOOR_RATIO_WARN, FLOOR_VISIBLE, floor_warnings
+
+    measured = np.array([0.03, 0.01, 0.008])  # 1/sr: a red body (π × 0.03 ≈ 0.09 visible)
+    assert floor_warnings(measured * 1.4, measured) == []
+    assert floor_warnings(measured / 1.4, measured, "linear") == []
+    (line,) = floor_warnings(measured * np.array([4.55, 30.1, 1.0]), measured, "linear")
+    assert "R: 4.55×, G: 30.1×" in line and "B:" not in line
+    assert "the linear metric weighs the highlight" in line
+    (line,) = floor_warnings(measured * np.array([1.0, 0.1, 0.1]), measured, "blend")
+    # G (π × 0.01 ≈ 0.031) is visible, B (π × 0.008 ≈ 0.025) is not.
+    assert "G: 0.1×" in line and "B:" not in line and "linear metric" not in line
+    # Too faint to see in either: not flagged, whatever the ratio (a metal's far tail).
+    faint = np.full(3, 0.5 * FLOOR_VISIBLE / math.pi)
+    assert floor_warnings(faint * (FLOOR_RATIO_WARN * 0.6), faint / 2) == []
+    # No measured floor at all, a visible fitted one: flagged.
+    (line,) = floor_warnings(np.array([0.1, 0.0, 0.0]), np.zeros(3))
+    assert "R: inf×" in line

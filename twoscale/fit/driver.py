@@ -33,6 +33,7 @@ from twoscale.fit.cells import CHUNK, pack, pair_cells, select_cells, with_scale
 from twoscale.fit.evaluation import (
     data_warnings,
     fit_warnings,
+    floor_warnings,
     predict_cells,
     rmse,
     rmse_within,
@@ -58,7 +59,7 @@ from twoscale.fit.material_type import (
 from twoscale.fit.record import FitResult, package_versions
 from twoscale.fit.residuals import DEFAULT_METRIC, Problem, check_metric, residuals_per_cell
 from twoscale.fit.schedule import Stage, resolve_schedule
-from twoscale.fit.starts import data_stats
+from twoscale.fit.starts import data_stats, floor_level
 
 
 class FitError(RuntimeError):
@@ -719,6 +720,10 @@ def _record(data, prep: _Prepared, groups, cands, stage_log, selections, setting
     warnings = data_warnings(prep.stats) + fit_warnings(g, best, params, cov_info)
     valid = prep.selection.valid
     pred = predict_cells(g.adapter, params, valid)
+    grid = np.zeros((prep.valid_grid.size, pred.shape[-1]))
+    grid[np.asarray(valid.index)] = pred
+    fit_floor = floor_level(grid.reshape(*prep.valid_grid.shape, -1), prep.valid_grid)
+    warnings += floor_warnings(fit_floor, prep.stats.floor, settings.metric)
     errs = rmse(pred, valid, prep.log_scale)
     wall = time.perf_counter() - t0
     say(

@@ -197,6 +197,46 @@ def data_warnings(stats) -> list[str]:
     ]
 
 
+#: A fitted diffuse floor more than this factor above or below the measured one, in a channel
+#: where either is visible (:data:`FLOOR_VISIBLE`), is flagged: the fit's pictures then show
+#: the wrong body. Good fits of the 60 stand-ins keep it within tens of percent.
+FLOOR_RATIO_WARN = 3.0
+#: ``π ×`` a floor level (the albedo of a Lambertian body at that level) below which a body is
+#: too faint to see next to a highlight; a metal's far tail is usually below it.
+FLOOR_VISIBLE = 0.03
+
+
+def floor_warnings(fitted, measured, metric: str | None = None) -> list[str]:
+    """One line when the fitted model's diffuse floor is off the measured one by more than
+    :data:`FLOOR_RATIO_WARN` in a channel where the body is visible (both are
+    :func:`~twoscale.fit.starts.floor_level`: the median over ``θ_h ∈ [50°, 70°]``,
+    ``θ_d ≤ 30°``). A fit can minimise its metric and still render a body of the wrong colour:
+    the linear metric weighs the highlight's thousands of 1/sr and hardly a body of 0.02 1/sr
+    (red-specular-plastic with ``--metric linear``: ρ_d = 1, 1, 0, a yellow sphere for a red
+    one, at exit 0 without a word)."""
+    fitted = np.asarray(fitted, dtype=np.float64)
+    measured = np.asarray(measured, dtype=np.float64)
+    names = "RGB" if fitted.size == 3 else None
+    off = []
+    for c, (f, m) in enumerate(zip(fitted, measured, strict=True)):
+        if math.pi * max(f, m) < FLOOR_VISIBLE:
+            continue
+        ratio = f / m if m > 0.0 else math.inf
+        if not 1.0 / FLOOR_RATIO_WARN <= ratio <= FLOOR_RATIO_WARN:
+            off.append(f"{names[c] if names else c}: {ratio:.3g}×")
+    if not off:
+        return []
+    hint = (
+        " (the linear metric weighs the highlight, hardly the body; the default metric fits both)"
+        if metric == "linear"
+        else ""
+    )
+    return [
+        f"the fitted diffuse floor is off the measured one ({', '.join(off)}; θ_h 50–70°, "
+        f"θ_d ≤ 30°): the pictures show a body of the wrong colour or brightness{hint}"
+    ]
+
+
 def fit_warnings(group: Group, cand: Candidate, params, cov_info: dict) -> list[str]:
     """One line per problem of a usable fit: step limit, parameters at a bound, rank deficiency."""
     out = []
