@@ -69,11 +69,11 @@ the fit leaves the other outputs and prints a ``warning:`` line.
 Exit status: 0 success, also for a usable fit with a problem (a parameter at the end of its range,
 a rank-deficient Jacobian, the step limit reached, data whose albedo is above 1.5,
 ``twoscale.fit.evaluation.ALBEDO_IMPLAUSIBLE``, a fitted diffuse floor more than 3× off the
-measured one where the body is visible, ``floor_warnings``): one ``warning:`` line each on
-stderr, and the same lines in ``params.json`` (``"warnings"``); 2 bad input (unreadable file, not a MERL file, no
-valid cell, every valid cell 0, bad option); 3 the fit failed (no start gave a finite fit, or no
-start made any progress); 1 unexpected internal error. Errors are one line on stderr, without a
-traceback (``TWOSCALE_DEBUG=1`` shows it).
+measured one where the body is visible, ``floor_warnings``): one ``warning:`` line each on stderr,
+and the same lines in ``params.json`` (``"warnings"``); 2 bad input (unreadable file, not a MERL
+file, no valid cell, every valid cell 0, bad option); 3 the fit failed (no start gave a finite fit,
+or no start made any progress); 1 unexpected internal error. Errors are one line on stderr, without
+a traceback (``TWOSCALE_DEBUG=1`` shows it).
 """
 
 from __future__ import annotations
