@@ -131,23 +131,16 @@ def test_table_through_the_pictures_evaluation():
     ]:
         ref = albedo_table_entry(params, config, n=32)
         got = albedo_table_entry(
-            params, config, n=32, evaluate=material_evaluator(adapter_for(config), params)
+            params, config, n=32, evaluate_lobes=material_evaluator(adapter_for(config), params)
         )
         assert got["channels"] == ref["channels"] and got["quadrature"] == ref["quadrature"]
         np.testing.assert_allclose(got["values"], ref["values"], rtol=1e-12, atol=0)
         assert np.all(np.asarray(got["values"]) > 0.01)
-        # The lobes apart (what the CLI passes): the same table, and its last row by lobe.
-        by_lobe = albedo_table_entry(
-            params,
-            config,
-            n=32,
-            evaluate_lobes=material_evaluator(adapter_for(config), params, lobes=True),
-        )
-        np.testing.assert_allclose(by_lobe["values"], ref["values"], rtol=1e-12, atol=0)
-        at_normal = by_lobe["lobes_at_normal"]
+        # The lobes apart (what the CLI passes): the table's last row by lobe.
+        at_normal = got["lobes_at_normal"]
         assert at_normal["cos_theta_i"] == 1.0
         parts = np.asarray([at_normal[n] for n in ("specular", "diffraction", "diffuse")])
-        np.testing.assert_allclose(parts.sum(axis=0), by_lobe["values"][-1], rtol=1e-12)
+        np.testing.assert_allclose(parts.sum(axis=0), got["values"][-1], rtol=1e-12)
         assert np.all(parts[:2] > 0.0)  # both lobes of these materials carry light
         assert "lobes_at_normal" not in ref
 
@@ -167,7 +160,7 @@ def test_summary_gives_the_light_per_lobe(sigma_s, faint):
         params,
         CONFIG,
         n=8,
-        evaluate_lobes=material_evaluator(adapter_for(CONFIG), params, lobes=True),
+        evaluate_lobes=material_evaluator(adapter_for(CONFIG), params),
     )
     lines = rec.summary().splitlines()
     light = [ln for ln in lines if "light per lobe at normal incidence" in ln]

@@ -91,7 +91,7 @@ def model_function(adapter, params, *, lobes: bool = False):
     model configuration, shared with the fit). With ``lobes=True`` (two-scale model only) the
     function returns ``{lobe: (..., C)}``.
     """
-    from twoscale.fit.adapters import LOBES
+    from twoscale.fit.adapters import LOBES, lobes_of
     from twoscale.fit.evaluation import evaluate_at
 
     n_ch = adapter.config.n_channels
@@ -102,22 +102,10 @@ def model_function(adapter, params, *, lobes: bool = False):
         if lobes:
             vals = evaluate_at(adapter.evaluate_lobes, params, wi, wo, len(LOBES) * n_ch)
             vals = vals.reshape(shape + (len(LOBES), n_ch))
-            present = [n for n in LOBES if n in _lobe_names(adapter.config)]
-            return {n: vals[..., LOBES.index(n), :] for n in present}
+            return {n: vals[..., LOBES.index(n), :] for n in lobes_of(adapter.config)}
         return evaluate_at(adapter.evaluate, params, wi, wo, n_ch).reshape(shape + (n_ch,))
 
     return call
-
-
-def _lobe_names(config) -> tuple[str, ...]:
-    names = []
-    if config.specular:
-        names.append("specular")
-    if config.diffraction:
-        names.append("diffraction")
-    if getattr(config, "has_diffuse", False):
-        names.append("diffuse")
-    return tuple(names)
 
 
 def _dirs(theta_h, theta_d, phi_d):

@@ -385,7 +385,7 @@ def _albedo(result, log) -> None:
     try:
         # Through the lobe evaluation the pictures use (compiled by the fit while its last
         # stage ran): no compiled function of its own.
-        evaluate = material_evaluator(adapter_for(config), result.params, lobes=True)
+        evaluate = material_evaluator(adapter_for(config), result.params)
         result.albedo_table = albedo_table_entry(result.params, config, evaluate_lobes=evaluate)
     except Exception as err:  # noqa: BLE001 - the fit is kept; the table is an extra
         if os.environ.get("TWOSCALE_DEBUG"):

@@ -63,6 +63,16 @@ START_K_MAX = 9.0
 LOBES = ("specular", "diffraction", "diffuse")
 
 
+def lobes_of(config) -> tuple[str, ...]:
+    """The lobes of :data:`LOBES` a two-scale configuration switches on, in that order."""
+    on = {
+        "specular": config.specular,
+        "diffraction": config.diffraction,
+        "diffuse": getattr(config, "has_diffuse", False),
+    }
+    return tuple(n for n in LOBES if on[n])
+
+
 class AbstractAdapter(eqx.Module):
     """What the driver needs of a model under a fixed (static, hashable) configuration."""
 

@@ -274,12 +274,12 @@ def warm_evaluation(adapter, params) -> np.ndarray:
     return evaluate_at(adapter.evaluate, params, d, d, n_ch)
 
 
-def material_evaluator(adapter, params, lobes: bool = False):
-    """``f(wi, wo) -> (N, C)``: a two-scale fit's material without MERL's apparatus factor
-    (``e = 0`` makes it 1 above the horizon), as the sum of its lobes through the compiled
-    evaluation of the pictures (:func:`warm_evaluation`), in calls of the small buffer.
-    ``lobes``: each lobe apart instead, ``(N, L, C)`` in the order of
-    :data:`~twoscale.fit.adapters.LOBES` (0 for a lobe switched off)."""
+def material_evaluator(adapter, params):
+    """``f(wi, wo) -> (N, L, C)``: a two-scale fit's material without MERL's apparatus factor
+    (``e = 0`` makes it 1 above the horizon), each lobe apart in the order of
+    :data:`~twoscale.fit.adapters.LOBES` (0 for a lobe switched off; their sum is the BRDF),
+    through the compiled evaluation of the pictures (:func:`warm_evaluation`), in calls of the
+    small buffer."""
     from twoscale.fit.adapters import LOBES
 
     if adapter.config.apparatus and params.e is not None:
@@ -288,7 +288,6 @@ def material_evaluator(adapter, params, lobes: bool = False):
 
     def f(wi, wo):
         vals = evaluate_at(adapter.evaluate_lobes, params, wi, wo, len(LOBES) * n_ch, small=True)
-        vals = vals.reshape(-1, len(LOBES), n_ch)
-        return vals if lobes else vals.sum(axis=1)
+        return vals.reshape(-1, len(LOBES), n_ch)
 
     return f

@@ -286,29 +286,24 @@ class FitResult:
                 continue
             se = self.std_errors.get(name)
             lines.append(f"  {name:8s} = {_fmt(value)}" + (f"  ± {_fmt(se)}" if se else ""))
-        lines += _lobe_lines(self.albedo_table, self.params)
+        lines += _lobe_lines(self.albedo_table, self.model_config)
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
-#: A lobe is part of the fitted model when its parameters are (a switched-off lobe has none).
-_LOBE_FIELD = {"specular": "beta", "diffraction": "sigma_s", "diffuse": "rho_d"}
-
-
-def _lobe_lines(albedo_table, params) -> list[str]:
+def _lobe_lines(albedo_table, config) -> list[str]:
     """The summary's lines on the light each lobe carries at normal incidence (from the albedo
-    table's ``"lobes_at_normal"``, when it has one), and a note when the diffraction lobe is too
-    faint to matter: ``σ_s ≈ 0`` then leaves its ``b`` and ``c`` undetermined."""
+    table's ``"lobes_at_normal"``, when it has one; the lobes ``config`` switches on), and a
+    note when the diffraction lobe is too faint to matter: ``σ_s ≈ 0`` then leaves its ``b``
+    and ``c`` undetermined."""
     import numpy as np
+
+    from twoscale.fit.adapters import lobes_of
 
     lobes = (albedo_table or {}).get("lobes_at_normal")
     if not lobes:
         return []
-    used = {
-        n: [float(x) for x in v]
-        for n, v in lobes.items()
-        if n in _LOBE_FIELD and getattr(params, _LOBE_FIELD[n], None) is not None
-    }
+    used = {n: [float(x) for x in lobes[n]] for n in lobes_of(config)}
     parts = "; ".join(f"{n} {_fmt(v)}" for n, v in used.items())
     out = [f"  light per lobe at normal incidence (directional albedo per channel): {parts}"]
     total = np.sum([v for v in used.values()], axis=0)
@@ -382,9 +377,7 @@ def result_from_dict(d: dict) -> FitResult:
 NEGLIGIBLE_LOBE = 1e-3
 
 
-def albedo_table_entry(
-    params, config, n: int = ALBEDO_ROWS, evaluate=None, evaluate_lobes=None
-) -> dict:
+def albedo_table_entry(params, config, n: int = ALBEDO_ROWS, evaluate_lobes=None) -> dict:
     """The ``"albedo_table"`` entry of ``params.json`` (layout in the module doc) for two-scale
     parameters and their :class:`~twoscale.ModelConfig`.
 
@@ -392,14 +385,13 @@ def albedo_table_entry(
     call of :func:`twoscale.albedo` on all ``n`` incidences at once (float64 when
     ``jax_enable_x64`` is on, as in the CLI), ``n_theta, n_phi =`` :data:`ALBEDO_QUADRATURE`.
 
-    ``evaluate(wi, wo) -> (N, C)`` (NumPy directions ``(N, 3)`` in and values out), if given,
-    is the BRDF used at the same quadrature nodes instead: the CLI passes the evaluation its
-    pictures already compiled (:func:`twoscale.fit.evaluation.material_evaluator`), which saves
-    compiling :func:`twoscale.albedo` (≈ 3 s on an empty compilation cache). Same sum, same
-    nodes. ``evaluate_lobes(wi, wo) -> (N, L, C)``, the lobes of
-    :data:`~twoscale.fit.adapters.LOBES` apart, instead: the entry then also holds
-    ``"lobes_at_normal"``, each lobe's directional albedo at ``cos θ_i = 1`` (the table's last
-    row split by lobe), which the summary prints.
+    ``evaluate_lobes(wi, wo) -> (N, L, C)`` (NumPy directions ``(N, 3)`` in, the lobes of
+    :data:`~twoscale.fit.adapters.LOBES` apart out), if given, is the BRDF used at the same
+    quadrature nodes instead: the CLI passes the evaluation its pictures already compiled
+    (:func:`twoscale.fit.evaluation.material_evaluator`), which saves compiling
+    :func:`twoscale.albedo` (≈ 3 s on an empty compilation cache). Same sum, same nodes; the
+    entry then also holds ``"lobes_at_normal"``, each lobe's directional albedo at
+    ``cos θ_i = 1`` (the table's last row split by lobe), which the summary prints.
     """
     import jax
     import jax.numpy as jnp
@@ -412,24 +404,19 @@ def albedo_table_entry(
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64
     cos_i = jnp.asarray((np.arange(n) + 1.0) / n, dtype)
     per_lobe = None
-    if evaluate is None and evaluate_lobes is None:
+    if evaluate_lobes is None:
         values = np.asarray(model.albedo(p, cos_i, cfg, *ALBEDO_QUADRATURE), np.float64)
     else:
+        from twoscale.fit.adapters import LOBES
+
         nodes = jax.jit(model.albedo_nodes, static_argnums=(1, 2))
         wi, wo, jac = (np.asarray(a) for a in nodes(cos_i[:, None], *ALBEDO_QUADRATURE))
         wi = np.broadcast_to(wi, wo.shape)
-        fn = evaluate if evaluate_lobes is None else evaluate_lobes
-        rho = np.asarray(fn(wi.reshape(-1, 3), wo.reshape(-1, 3)), np.float64)
-        if evaluate_lobes is None:
-            rho = rho.reshape(*jac.shape, -1)
-            values = np.sum(rho * jac[..., None], axis=(-3, -2))
-        else:
-            from twoscale.fit.adapters import LOBES
-
-            rho = rho.reshape(*jac.shape, len(LOBES), -1)
-            lobe_values = np.sum(rho * jac[..., None, None], axis=(-4, -3))  # (n, L, C)
-            values = lobe_values.sum(axis=-2)
-            per_lobe = {"cos_theta_i": 1.0} | dict(zip(LOBES, lobe_values[-1], strict=True))
+        rho = np.asarray(evaluate_lobes(wi.reshape(-1, 3), wo.reshape(-1, 3)), np.float64)
+        rho = rho.reshape(*jac.shape, len(LOBES), -1)
+        lobe_values = np.sum(rho * jac[..., None, None], axis=(-4, -3))  # (n, L, C)
+        values = lobe_values.sum(axis=-2)
+        per_lobe = {"cos_theta_i": 1.0} | dict(zip(LOBES, lobe_values[-1], strict=True))
     if not cfg.is_spectral or cfg.spectral_output == "rgb":
         channels = ["R", "G", "B"]
     else:
