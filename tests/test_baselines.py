@@ -89,6 +89,14 @@ def test_reciprocal_and_zero_below_horizon(dist):
     )
     below = wo * np.array([1, 1, -1])
     assert np.all(np.asarray(cook_torrance(p, wi, below, cfg)) == 0.0)
+    # Directions of any length give their unit vectors' values; a zero vector gives 0.
+    scale = rng.uniform(0.05, 20.0, (2, 50, 1))
+    np.testing.assert_allclose(
+        cook_torrance(p, wi * scale[0], wo * scale[1], cfg),
+        cook_torrance(p, wi, wo, cfg),
+        rtol=1e-12,
+    )
+    assert np.all(np.asarray(cook_torrance(p, 0.0 * wi, wo, cfg)) == 0.0)
 
 
 def test_unconstrained_roundtrip_and_range():

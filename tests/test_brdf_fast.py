@@ -132,9 +132,17 @@ def test_scaled_channels_equals_slices():
 def test_frame_from_components_and_wrapped_g():
     wi, wo = _dirs(200, 3)
     a = geometry.frame(wi, wo)
-    b = geometry.frame_from_components(tuple(wi.T), tuple(wo.T))
+    unit = geometry.unit_components
+    b = geometry.frame_from_components(unit(tuple(wi.T)), unit(tuple(wo.T)))
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # frame scales its directions to unit length, and leaves unit ones as they are.
+    raw = geometry.frame_from_components(tuple(wi.T), tuple(wo.T))
+    for x, y in zip(a, raw, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    scaled = geometry.frame(wi * 3.0, wo * 0.25)
+    for x, y in zip(scaled, raw, strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-14, atol=1e-15)
     phi = jnp.concatenate([jnp.zeros(1), jnp.logspace(-12, 0, 50) * jnp.pi])
     li, lo = jnp.full_like(phi, 0.7), jnp.full_like(phi, 0.3)
     g = shadowing.joint_g_from_lambdas(li, lo, phi, wrapped=True)

@@ -114,6 +114,27 @@ def test_below_horizon_is_zero_with_finite_gradients():
     assert_finite_tree(gd, "direction gradient below the horizon")
 
 
+def test_directions_of_any_length_give_their_unit_vectors_values():
+    """``brdf`` and ``lobes`` scale the directions they are given to unit length: a direction
+    of any length gives its unit vector's value (it used to give a wrong value, silently), a
+    zero vector counts as below the horizon, with finite derivatives along it."""
+    params = _params("plastic")
+    cfg = ModelConfig(material="plastic", apparatus=True, q_mode="full")
+    wi, wo = _random_dirs(64, 7)
+    rng = np.random.default_rng(8)
+    s_i, s_o = (jnp.asarray(rng.uniform(0.05, 20.0, (64, 1))) for _ in range(2))
+    want = brdf(params, wi, wo, cfg)
+    assert np.all(np.asarray(want) > 0.0)
+    np.testing.assert_allclose(brdf(params, wi * s_i, wo * s_o, cfg), want, rtol=1e-12)
+    got = lobes(params, wi * s_i, wo * s_o, cfg)
+    for name, v in lobes(params, wi, wo, cfg).items():
+        np.testing.assert_allclose(got[name], v, rtol=1e-12, err_msg=name)
+    zero = jnp.zeros_like(wi)
+    vals, tangent = jax.jvp(lambda a: brdf(params, a, wo, cfg), (zero,), (jnp.ones_like(wi),))
+    assert np.all(np.asarray(vals) == 0.0)
+    assert np.all(np.isfinite(np.asarray(tangent)))
+
+
 # ------------------------------------------------------------------------------------ reductions
 def _check_sigma_zero(material):
     params = _params(material, sigma_s=0.0)

@@ -248,6 +248,14 @@ def test_pdf_zero_below_horizon():
     # A sample whose wo fell below the horizon has pdf 0, and only those.
     _, _, _, wo_r, pdf_r = _draw("rough", 80)
     np.testing.assert_array_equal(pdf_r == 0.0, wo_r[:, 2] <= 0.0)
+    # Directions of any length: the density and the samples of their unit vectors.
+    s_i, s_o = rng.uniform(0.05, 20.0, (2, 512, 1))
+    np.testing.assert_allclose(
+        twoscale.pdf(params, jnp.asarray(wi * s_i), jnp.asarray(wo * s_o), cfg), pdf, rtol=1e-12
+    )
+    wo_l, pdf_l = twoscale.sample(params, jnp.asarray(wi * s_i), _uniforms(4, 512), cfg)
+    np.testing.assert_allclose(wo_l, wo_s, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(pdf_l, pdf_s, rtol=1e-12)
 
 
 def _extreme_params():

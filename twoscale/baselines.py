@@ -30,6 +30,7 @@ from jax.scipy.special import erfc
 
 from twoscale._numerics import safe_sqrt, tiny
 from twoscale.config import APPARATUS_ANGLES, SHADOWING
+from twoscale.geometry import unit
 from twoscale.model import PAPER_KNEE, apparatus_weight
 from twoscale.params import bounds_for
 
@@ -221,7 +222,8 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
 
     Args:
         params: :class:`CookTorranceParams`.
-        wi, wo: unit directions ``(..., 3)`` pointing away from the surface (normal = z).
+        wi, wo: directions ``(..., 3)`` pointing away from the surface (normal = z), of any
+            length (scaled to unit length; a zero vector counts as below the horizon).
         config: :class:`CookTorranceConfig` (the distribution).
     Returns:
         ``(..., 3)``; 0 where either direction is at or below the horizon.
@@ -229,6 +231,7 @@ def cook_torrance(params: CookTorranceParams, wi, wo, config=CookTorranceConfig(
     wi = jnp.asarray(wi)
     wo = jnp.asarray(wo)
     dtype = jnp.result_type(wi, wo, params.alpha)
+    wi, wo = unit(wi.astype(dtype)), unit(wo.astype(dtype))  # any length: their unit vectors
     fl = tiny(dtype)
     cos_i = wi[..., 2]
     cos_o = wo[..., 2]

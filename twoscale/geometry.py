@@ -1,7 +1,9 @@
 """Frame convention, half/difference angles and MERL coordinates ↔ directions [docs/model.md §1, §7].
 
-Convention: ``i`` (``wi``) and ``o`` (``wo``) are unit vectors pointing *away* from the surface,
-shaped ``(..., 3)``; the normal is ``z``. The half vector is ``h = (i+o)/|i+o|``, ``θ_h = ∠(h, z)``
+Convention: ``i`` (``wi``) and ``o`` (``wo``) are directions pointing *away* from the surface,
+shaped ``(..., 3)``; the normal is ``z``. :func:`frame` (and so the model's per-pair path)
+scales them to unit length first (:func:`unit`): a direction of any length gives the value of
+its unit vector, a zero vector counts as below the horizon. The half vector is ``h = (i+o)/|i+o|``, ``θ_h = ∠(h, z)``
 and ``θ_d = ∠(i, h)`` (so ``cos θ_d = i·h``). The model works in the :class:`Frame` of cosines
 (and sines) computed here once per direction pair.
 
@@ -30,6 +32,8 @@ __all__ = [
     "Frame",
     "frame",
     "frame_from_components",
+    "unit",
+    "unit_components",
     "tan_theta",
     "spherical",
     "half_diff_from_dirs",
@@ -74,7 +78,7 @@ def _guarded_atan2(y, x, floor2):
 
 
 def frame(wi, wo) -> Frame:
-    """Compute the :class:`Frame` of a pair of unit directions.
+    """Compute the :class:`Frame` of a pair of directions (scaled to unit length first).
 
     ``s = i + o``, ``δ = i − o``: ``cos θ_h = s_z/|s|``, ``sin θ_h = |s_xy|/|s|``,
     ``cos θ_d = |s|/√(|s|²+|δ|²)``, ``sin θ_d = |δ|/√(|s|²+|δ|²)`` (for unit vectors
@@ -88,20 +92,57 @@ def frame(wi, wo) -> Frame:
     ``|s_xy|``, ``|δ|`` have gradient 0 where they vanish (``θ_h = 0``, ``i = o``).
 
     Args:
-        wi: incident direction(s), unit, shape ``(..., 3)``, pointing away from the surface.
-        wo: outgoing direction(s), unit, shape ``(..., 3)``; broadcasts with ``wi``.
+        wi: incident direction(s), shape ``(..., 3)``, pointing away from the surface (any
+            length: scaled to unit length, :func:`unit_components`).
+        wo: outgoing direction(s), shape ``(..., 3)``; broadcasts with ``wi``.
     Returns:
         :class:`Frame` with fields of shape ``broadcast(wi, wo).shape[:-1]`` and the inputs' dtype.
     """
     (wi, wo), dtype = _as_float(wi, wo)
     wi, wo = jnp.broadcast_arrays(wi, wo)
     return frame_from_components(
-        (wi[..., 0], wi[..., 1], wi[..., 2]), (wo[..., 0], wo[..., 1], wo[..., 2])
+        unit_components((wi[..., 0], wi[..., 1], wi[..., 2])),
+        unit_components((wo[..., 0], wo[..., 1], wo[..., 2])),
     )
 
 
+#: Squared lengths within this many machine epsilons of 1 count as unit (:func:`unit_components`).
+UNIT_TOLERANCE = 16
+
+
+def unit_components(w):
+    """The components ``(x, y, z)`` of a direction scaled to unit length (a zero vector stays
+    zero, with finite gradients): the model's directions need not be normalised by the caller.
+
+    Derivatives are those of ``w/|w|`` everywhere. Values: a direction whose squared length is
+    1 to within :data:`UNIT_TOLERANCE` ulps is returned as it is, bit for bit (rescaling it
+    would only move it by rounding, which a very sharp lobe amplifies: a density of 1e9 1/sr
+    changes by ~1e-9 relative), so unit input, the usual case, keeps the values it had before
+    directions were rescaled. (``x̂ + (x − x̂)`` is exactly ``x`` there: the difference of two
+    numbers within a factor 2 of each other is exact.)
+    """
+    x, y, z = w
+    n2 = x * x + y * y + z * z
+    ok = n2 > 0.0
+    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, n2, 1.0)), 0.0)
+    keep = jax.lax.stop_gradient(jnp.abs(n2 - 1.0) <= UNIT_TOLERANCE * eps(jnp.result_type(n2)))
+
+    def one(c):
+        scaled = c * inv
+        return scaled + jax.lax.stop_gradient(jnp.where(keep, c - scaled, 0.0))
+
+    return one(x), one(y), one(z)
+
+
+def unit(w):
+    """:func:`unit_components` of ``(..., 3)`` directions, as ``(..., 3)``."""
+    w = jnp.asarray(w)
+    return jnp.stack(unit_components((w[..., 0], w[..., 1], w[..., 2])), axis=-1)
+
+
 def frame_from_components(wi, wo) -> Frame:
-    """:func:`frame` of directions given as component arrays ``(x, y, z)`` each.
+    """:func:`frame` of unit directions given as component arrays ``(x, y, z)`` each (the
+    caller scales them to unit length: :func:`unit_components`).
 
     The components are floating arrays of one dtype and one (broadcast) shape; the model's
     per-pair path passes them as contiguous rows (a ``(..., 3)`` array's components are

@@ -575,6 +575,8 @@ def _channel_lobes(
     """
     ch = _channels(params, cfg, wi, wo, schlick=schlick)
     wi, wo = jnp.broadcast_arrays(jnp.asarray(wi, ch.dtype), jnp.asarray(wo, ch.dtype))
+    # Any length: their unit vectors, computed before the components are split into rows.
+    wi, wo = geometry.unit(wi), geometry.unit(wo)
     out = _pair_lobes(ch, wi, wo, cfg, _lobe_slice(ch, cfg), total)
     return {k: _channels_last(v) for k, v in out.items()}
 
@@ -649,8 +651,10 @@ def brdf(params: TwoScaleParams, wi, wo, config: ModelConfig = ModelConfig(), *,
     Args:
         params: :class:`~twoscale.params.TwoScaleParams` (physical units; fields the config does not
             use may be None). Batch over parameter sets with ``jax.vmap``.
-        wi, wo: unit directions ``(..., 3)`` pointing away from the surface (normal = z);
-            broadcast together. Directions at or below the horizon give 0.
+        wi, wo: directions ``(..., 3)`` pointing away from the surface (normal = z);
+            broadcast together. Any length: each is scaled to unit length
+            (:func:`twoscale.geometry.unit`). Directions at or below the horizon (and zero
+            vectors) give 0.
         config: static :class:`~twoscale.config.ModelConfig`.
         schlick: optional boolean array that chooses a dielectric coat's Fresnel form at run
             time instead of ``config.fresnel`` (True: Schlick's form, False: the exact

@@ -474,7 +474,8 @@ def _pdf_kernel(smp: Sampler, wi, wo):
 @jax.jit
 def _sample_kernel(smp: Sampler, wi, u):
     dtype = smp.weights.albedo.dtype
-    wi, u = jnp.broadcast_arrays(jnp.asarray(wi, dtype), jnp.asarray(u, dtype))
+    given, u = jnp.broadcast_arrays(jnp.asarray(wi, dtype), jnp.asarray(u, dtype))
+    wi = geometry.unit(given)  # any length: its unit vector
     cos_i = wi[..., 2]
     probs = _probabilities(smp.weights, cos_i)
     cum = jnp.cumsum(probs, axis=-1)
@@ -496,7 +497,8 @@ def _sample_kernel(smp: Sampler, wi, u):
     wo = candidates[0]
     for n in range(1, n_lobes):
         wo = jnp.where((choice == n)[..., None], candidates[n], wo)
-    return wo.astype(dtype), _mixture_pdf(smp, wi, wo)
+    # The density as pdf(wi, wo) computes it (from the direction given: the same rounding).
+    return wo.astype(dtype), _mixture_pdf(smp, given, wo)
 
 
 def pdf(params: TwoScaleParams, wi, wo, config: ModelConfig | None = None):
@@ -505,7 +507,8 @@ def pdf(params: TwoScaleParams, wi, wo, config: ModelConfig | None = None):
     Args:
         params: :class:`~twoscale.params.TwoScaleParams` (one parameter set; ``jax.vmap`` for
             several).
-        wi, wo: unit directions ``(..., 3)`` pointing away from the surface; broadcast together.
+        wi, wo: directions ``(..., 3)`` pointing away from the surface, of any length (scaled
+            to unit length); broadcast together.
         config: :class:`~twoscale.config.ModelConfig` (static under ``jit``); ``None`` means
             ``ModelConfig()`` with the parameters' material.
     Returns:
@@ -522,7 +525,8 @@ def sample(params: TwoScaleParams, wi, u, config: ModelConfig | None = None):
     Args:
         params: :class:`~twoscale.params.TwoScaleParams` (one parameter set; ``jax.vmap`` for
             several).
-        wi: unit incident directions ``(..., 3)`` pointing away from the surface.
+        wi: incident directions ``(..., 3)`` pointing away from the surface, of any length
+            (scaled to unit length).
         u: uniform numbers in [0, 1), ``(..., 3)``: ``u[..., 0]`` chooses the lobe (and, for
             the diffraction lobe, the wavelength and table row), ``u[..., 1:]`` place the
             direction. Broadcasts with ``wi``.
