@@ -250,6 +250,11 @@ ETA_COAT_MAX = 1.7
 EVIDENCE_RTOL = 0.1
 
 
+def _within_evidence(rms, other) -> bool:
+    """Is ``rms`` at most :data:`EVIDENCE_RTOL` above ``other`` (no evidence against it)?"""
+    return rms <= (1.0 + EVIDENCE_RTOL) * other
+
+
 def dielectric_albedo_bound(fall_off=None, eta: float = ETA_COAT_MAX, n: int = 2048) -> float:
     """The bihemispherical albedo of a smooth dielectric interface of index ``eta`` seen through
     MERL's apparatus fall-off (``L(θ)²`` at the mirror direction, in either of its forms):
@@ -331,7 +336,7 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
                     f"is {share:.0%} of the measured albedo; plastic: {frac_p:.0%})"
                 )
             if frac_p >= MISSING_BODY:
-                if rms_p > (1.0 + EVIDENCE_RTOL) * rms_c:
+                if not _within_evidence(rms_p, rms_c):
                     # The lobes make the floor and fit clearly better: a rough metal's tail.
                     return "conductor", (
                         f"the measured floor carries {share:.0%} of the light (albedo π ρ = "
@@ -356,7 +361,7 @@ def choose_type(best: dict, body: dict | None = None) -> tuple[str, str]:
             # A floor beyond a bare metal's faint scatter that the conductor fit leaves out would
             # render black: then the highlight does not decide (the RMS does, below).
             dark = kind == "conductor" and share > FAINT_SHARE and frac_c < MISSING_BODY
-            if not dark and best[kind][0] <= (1.0 + EVIDENCE_RTOL) * best[other][0]:
+            if not dark and _within_evidence(best[kind][0], best[other][0]):
                 side = "more" if kind == "conductor" else "no more"
                 return kind, (
                     f"no diffuse body ({share:.0%} of the light); the highlight's albedo "
@@ -470,7 +475,7 @@ def type_from_highlight(stats, rms: dict, fall_off) -> tuple[str, str] | None:
     if not faint_floor(stats) or {"conductor", "plastic"} - set(rms):
         return None
     highlight, bound, share = _highlight_against_bound(stats, fall_off)
-    if highlight <= bound or not rms["conductor"] <= (1.0 + EVIDENCE_RTOL) * rms["plastic"]:
+    if highlight <= bound or not _within_evidence(rms["conductor"], rms["plastic"]):
         return None
     return "conductor", (
         f"no diffuse body ({share:.0%} of the light); the highlight's albedo {highlight:.3g} is "
