@@ -205,6 +205,12 @@ def test_half_diff_round_trip():
     np.testing.assert_allclose(wo[:, 2], a + b, atol=1e-15)
     th2, td2, pd2 = g.half_diff_from_dirs(wi, wo)
     np.testing.assert_allclose(th2, th, atol=1e-13)
+    # Directions of any length: the angles of their unit vectors.
+    scale = rng.uniform(0.05, 20.0, (2, 5000, 1))
+    for a, b in zip(
+        g.half_diff_from_dirs(wi * scale[0], wo * scale[1]), (th2, td2, pd2), strict=True
+    ):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-12)
     np.testing.assert_allclose(td2, td, atol=1e-13)
     dp = np.angle(np.exp(1j * (np.asarray(pd2) - pd)))
     np.testing.assert_allclose(dp, 0.0, atol=1e-11)

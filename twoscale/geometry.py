@@ -227,15 +227,15 @@ def half_diff_from_dirs(wi, wo):
     ``θ_h = 0`` (then ``d = i``), ``φ_d = 0`` at ``θ_d = 0``; ``h = z`` at ``i = −o``.
 
     Args:
-        wi: incident direction(s), unit, ``(..., 3)``.
-        wo: outgoing direction(s), unit, ``(..., 3)``; broadcasts with ``wi``.
+        wi: incident direction(s), ``(..., 3)``, of any length (:func:`unit`).
+        wo: outgoing direction(s), ``(..., 3)``; broadcasts with ``wi``.
     Returns:
         ``(theta_h, theta_d, phi_d)``: ``θ_h, θ_d ∈ [0, π]``, ``φ_d ∈ (−π, π]`` (not folded; the
         MERL index folds it into [0, π) by reciprocity), each of the broadcast shape without the
         last axis.
     """
     (wi, wo), dtype = _as_float(wi, wo)
-    wi, wo = jnp.broadcast_arrays(wi, wo)
+    wi, wo = jnp.broadcast_arrays(unit(wi), unit(wo))
     e2 = eps(dtype) ** 2
     ix, iy, iz = wi[..., 0], wi[..., 1], wi[..., 2]
     sx, sy, sz = ix + wo[..., 0], iy + wo[..., 1], iz + wo[..., 2]
