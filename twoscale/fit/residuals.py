@@ -315,22 +315,18 @@ def metric_slopes(pred, chunk, metric: str):
     - the log metrics: ``w k / (1 + ρ k)`` for ``k = cos θ_i`` (plain) or ``cos θ_i / s_c``
       (scaled); ``"blend"``: both.
     """
+    parts = ("scaled-log", "log") if metric == "blend" else (metric,)
+    values = tuple(metric_residual(pred, chunk, m) for m in parts)
     cos = chunk["cos"][..., None]
     w = chunk["w"][..., None]
-    if metric == "linear":
-        r = (pred - chunk["rho"]) * cos * w
-        return (r,), (cos * w,), jnp.sum(r * r)
 
-    def log_terms(k, measured):
-        return (jnp.log1p(pred * k) - measured) * w, w * k / (1.0 + pred * k)
+    def slope(m):
+        if m == "linear":
+            return cos * w
+        k = cos * chunk["s"] if m == "scaled-log" else cos
+        return w * k / (1.0 + pred * k)
 
-    parts = []
-    if metric in ("scaled-log", "blend"):
-        parts.append(log_terms(cos * chunk["s"], chunk["log_s"]))
-    if metric in ("log", "blend"):
-        parts.append(log_terms(cos, chunk["log"]))
-    values, slopes = zip(*parts, strict=True)
-    return values, slopes, sum(jnp.sum(r * r) for r in values)
+    return values, tuple(slope(m) for m in parts), sum(jnp.sum(r * r) for r in values)
 
 
 def sum_squares(problem: Problem, y, frozen, data, n_active) -> jax.Array:
