@@ -1,10 +1,10 @@
 """Frame convention, half/difference angles and MERL coordinates ↔ directions [docs/model.md §1, §7].
 
 Convention: ``i`` (``wi``) and ``o`` (``wo``) are directions pointing *away* from the surface,
-shaped ``(..., 3)``; the normal is ``z``. :func:`frame` (and so the model's per-pair path)
-scales them to unit length first (:func:`unit`): a direction of any length gives the value of
-its unit vector, a zero vector counts as below the horizon. The half vector is ``h = (i+o)/|i+o|``, ``θ_h = ∠(h, z)``
-and ``θ_d = ∠(i, h)`` (so ``cos θ_d = i·h``). The model works in the :class:`Frame` of cosines
+shaped ``(..., 3)``; the normal is ``z``. :func:`frame`, :func:`half_diff_from_dirs` and the
+model's evaluators scale them to unit length first (:func:`unit`): a direction of any length
+gives the value of its unit vector, a zero vector counts as below the horizon. The half vector
+is ``h = (i+o)/|i+o|``, ``θ_h = ∠(h, z)`` and ``θ_d = ∠(i, h)`` (so ``cos θ_d = i·h``). The model works in the :class:`Frame` of cosines
 (and sines) computed here once per direction pair.
 
 Every function is elementwise over the leading axes, keeps the floating dtype of its inputs
@@ -125,7 +125,7 @@ def unit_components(w):
     n2 = x * x + y * y + z * z
     ok = n2 > 0.0
     inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, n2, 1.0)), 0.0)
-    keep = jax.lax.stop_gradient(jnp.abs(n2 - 1.0) <= UNIT_TOLERANCE * eps(jnp.result_type(n2)))
+    keep = jnp.abs(n2 - 1.0) <= UNIT_TOLERANCE * eps(jnp.result_type(n2))
 
     def one(c):
         scaled = c * inv
