@@ -635,8 +635,10 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             if type_record is not None:
                 say(f"material: {type_record['chosen']} ({type_record['reason']})")
         if warm is not None:
-            if bodiless_preview and type_record is None:
-                warm_full(configs)
+            # The full models' solves are queued already, except where a preview's decision
+            # went to the type not compiled ahead: its solve then goes before the grids (to
+            # the first thread that comes free), not behind them. Then their grid evaluation.
+            warm_full(configs)
             warm_full(configs, grids=True)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
