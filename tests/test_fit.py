@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
 
 import equinox as eqx
 import jax
@@ -913,6 +914,64 @@ def test_preview_of_a_bare_metal_fits_one_type(tmp_path, monkeypatch):
     assert "type conductor: no diffuse body" in res.summary()
     back = load_result(res.save(tmp_path / "params.json"))
     assert back.type_selection == json.loads(json.dumps(ts))
+
+
+@pytest.mark.parametrize(
+    ("guess", "winner"),
+    [("conductor", "plastic"), ("conductor", "conductor"), ("plastic", "conductor")],
+)
+def test_preview_queues_the_decided_type_before_the_grids(monkeypatch, guess, winner):
+    """A bodiless preview compiles ahead the full model of the type its highlight suggests;
+    when the special cases decide the other type, that type's solve is queued at the decision,
+    before the grid evaluations queued with it (it is needed first), and nothing is queued
+    twice. The driver's path without a solve: the screening stages and the decision stubbed."""
+    from twoscale import ModelConfig, TwoScaleParams
+    from twoscale.fit import driver, merl_protocol
+    from twoscale.fit.material_type import resolve_configs
+
+    metal = TwoScaleParams.conductor(0.08, 1.5, (0.2, 0.4, 1.1), (3.2, 2.5, 1.9), e=0.8)
+    cfg = ModelConfig(diffraction=False, apparatus=True, material="conductor")
+    data = synthetic(metal, cfg, noise=0.01, seed=6)
+    prep = types.SimpleNamespace(stats=data_stats(np.asarray(data.values), np.asarray(data.valid)))
+    assert driver.faint_floor(prep.stats)  # a bodiless material: the preview decides early
+
+    def screening(prep_, groups, cands, stages, opts, say, choose, warm=None):
+        for i, c in enumerate(cands):
+            c.cost = 0.1 + 0.01 * i
+        return sorted(cands, key=lambda c: c.cost), [{"n_cells_used": 4096}], None, {}
+
+    def decision(prep_, configs, start_lists, source, sub_groups, best, stages, settings, floors):
+        keep = [gi for gi, c in enumerate(configs) if c.material == winner]
+        record = {"chosen": winner, "reason": "stubbed"}
+        return (
+            [floors.get(configs[gi], configs[gi]) for gi in keep],
+            [start_lists[gi] for gi in keep],
+            [source[gi] for gi in keep],
+            record,
+        )
+
+    monkeypatch.setattr(driver, "_run_schedule", screening)
+    monkeypatch.setattr(driver, "_preview_decision", decision)
+    monkeypatch.setattr(driver, "highlight_suggests_conductor", lambda *a: guess == "conductor")
+    queue = []
+
+    class Warm:  # records the order of what the fit queues for compiling
+        def submit(self, g, y):
+            if g.adapter.config.diffraction:
+                queue.append(("solve", g.adapter.config.material))
+
+        def submit_call(self, key, fn):
+            queue.append(("call", key[0]))
+
+    configs, floors = driver._split_floors(resolve_configs(merl_protocol(), "auto"))
+    settings = driver.FitSettings(starts="few", stages=(Stage(4096, 1, 5), Stage(8192, 1, 5)))
+    out, *_, decided = driver._make_starts(prep, configs, settings, lambda m: None, Warm(), floors)
+    assert decided["chosen"] == winner and [c.material for c in out] == [winner]
+    solves = [q for q in queue if q[0] == "solve"]
+    assert solves[0] == ("solve", guess)  # compiled ahead, before the decision
+    assert len(solves) == len(set(solves)) == (1 if guess == winner else 2), queue
+    first_grid = queue.index(("call", "grid"))
+    assert queue.index(("solve", winner)) < first_grid, queue
 
 
 @pytest.mark.slow

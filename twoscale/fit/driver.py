@@ -552,6 +552,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                     ("grid", compile_key(g.adapter)), lambda a=g.adapter, p=p0: a.evaluate_grid(p)
                 )
 
+        ahead = None  # a bodiless preview's type whose full model is compiled ahead
         if warm is not None:
             # The special cases' solves first (in order of use), then the full models' (their
             # layouts do not depend on the start values, nor their compiled solves on a
@@ -563,7 +564,7 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
                 # Only one type's full model is fitted, decided after the special cases: the
                 # type the data's highlight suggests (through the fall-off the fits start from)
                 # is compiled ahead, a conductor with its floor; the other type's solve, if it
-                # wins, when it is first called; every full model if nothing was decided (below).
+                # wins, is queued at the decision; every full model if nothing was decided (below).
                 # Both or none ahead measured no faster: the two compilations share two cores.
                 start_fall_off = (START_E, START_M) if configs[0].apparatus else None
                 ahead = (
@@ -635,10 +636,11 @@ def _make_starts(prep: _Prepared, configs, settings: FitSettings, say, warm=None
             if type_record is not None:
                 say(f"material: {type_record['chosen']} ({type_record['reason']})")
         if warm is not None:
-            # The full models' solves are queued already, except where a preview's decision
-            # went to the type not compiled ahead: its solve then goes before the grids (to
-            # the first thread that comes free), not behind them. Then their grid evaluation.
-            warm_full(configs)
+            # The full models' solves are queued already, except where a preview decided
+            # nothing or the other type than the one compiled ahead: that solve goes before the
+            # grids (to the first thread that comes free), not behind them.
+            if bodiless_preview and (type_record is None or type_record["chosen"] != ahead):
+                warm_full(configs)
             warm_full(configs, grids=True)
         for gi, cfg in enumerate(configs):
             if not cfg.diffraction or source[gi] not in best:
