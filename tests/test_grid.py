@@ -261,9 +261,9 @@ FIT_CASES = [
 
 
 @pytest.mark.parametrize(
-    # The plastic compiles for ≈ 24 s (the conductor covers the same factor code) and the bare
-    # conductor for ≈ 15 s (the protocol's conductor, case 3, has every factor of it and the
-    # fall-off and floor besides): the slow set.
+    # The plastic compiles for ≈ 24 s (the conductor covers the same factor code), and the bare
+    # conductor's case takes ≈ 15 s (measured 2026-12-07; the protocol's conductor, case 3, has
+    # every factor of it and the fall-off and floor besides): the slow set.
     "case",
     [pytest.param(0, marks=pytest.mark.slow), pytest.param(1, marks=pytest.mark.slow), 2, 3, 4],
 )
