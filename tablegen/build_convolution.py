@@ -3,7 +3,7 @@
 Run from the repository root: ``python -m tablegen.build_convolution`` (deterministic, one process,
 a few minutes on 2 cores). Representation (see :mod:`twoscale.convolution`):
 
-``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t)``
+``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh u, t)``
 
 ``g`` is tabulated at the nodes of a 5-D grid (``values``, float32: the values are O(10), so
 float32's 6e-8 relative rounding is far below the interpolation error, and the file is half
@@ -12,7 +12,7 @@ the size); ``t ∈ [0, 1]`` is the normalised angle of
 ``t = 1``), whose per-node parameters ``(log ζ_end, log ζ_π, log T_max)`` are stored in the extra
 ``map`` (4-D, analytic :func:`twoscale.convolution.map_params`). ``k = L(π/2)/L(0)`` at
 ``u = 0`` (where ``L = A cos²θ_h + B sin²θ_h`` exactly) is the extra ``log_k`` over
-``(ln β, ln p)``. The θ_h of each t node is found by bisection on the same jnp function the
+``(ln β, ln(p − 0.1))``. The θ_h of each t node is found by bisection on the same jnp function the
 library evaluates, and the lobe there by the exact quadrature (:func:`lobe_exact`, fewer nodes).
 """
 
@@ -34,8 +34,8 @@ from twoscale import convolution as conv  # noqa: E402
 from twoscale.tables import DATA_DIR, Axis  # noqa: E402
 
 SETTINGS = {
-    "n_beta": 14,
-    "n_p": 22,
+    "n_beta": 17,
+    "n_p": 26,
     "n_c": 14,
     "n_u": 20,
     "n_t": 40,
@@ -49,7 +49,13 @@ def axes(s=SETTINGS):
     """The five table axes (coordinates as in :mod:`twoscale.convolution`)."""
     return (
         Axis("log_beta", math.log(1e-3), 0.0, s["n_beta"], "ln β"),
-        Axis("log_p", math.log(0.2), math.log(5.0), s["n_p"], "ln p"),
+        Axis(
+            "log_p_minus_offset",
+            math.log(0.2 - conv.P_OFFSET),
+            math.log(5.0 - conv.P_OFFSET),
+            s["n_p"],
+            "ln(p − P_OFFSET), convolution.P_OFFSET",
+        ),
         Axis("log_c_minus_1", math.log(0.01), math.log(4.0), s["n_c"], "ln(c − 1)"),
         Axis("asinh_u", 0.0, math.asinh(1000.0), s["n_u"], "asinh u"),
         Axis("t", 0.0, 1.0, s["n_t"], "normalised angle (convolution.normalised_angle)"),
@@ -75,7 +81,7 @@ def _theta_of_t(t, u, beta, q, log_map, steps):
 def build(s=SETTINGS, out=None, verbose=True):
     t0 = time.time()
     ax = axes(s)
-    betas, ps = np.exp(ax[0].nodes()), np.exp(ax[1].nodes())
+    betas, ps = np.exp(ax[0].nodes()), conv.P_OFFSET + np.exp(ax[1].nodes())
     cs = 1.0 + np.exp(ax[2].nodes())
     us = np.sinh(ax[3].nodes())
     us[0] = 0.0
@@ -131,7 +137,7 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         raise ValueError("convolution map parameters are non-finite")
     meta = {
         "name": "convolution",
-        "version": 3,
+        "version": 4,
         "axes": [a.__dict__ for a in ax],
         "components": [],
         "generator": {**s, "module": "tablegen.build_convolution", "values_dtype": "float32"},

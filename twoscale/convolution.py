@@ -30,7 +30,7 @@ Two evaluation paths (``path=``):
 
 ``"tables"``
     Tabulated values of ``log L − log(cos²θ_h + k sin²θ_h)`` on a 5-D grid over
-    ``(ln β, ln p, ln(c−1), asinh u, t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
+    ``(ln β, ln(p − 0.1), ln(c−1), asinh u, t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
     onto ``[0, 1]`` for every parameter set, interpolated by the C² spline of
     :mod:`twoscale.tables` (see :class:`LobeSlice` and ``tablegen/CONVOLUTION.md``).
 """
@@ -180,7 +180,7 @@ def lobe(cos_theta_h, beta, p, c, u, *, path: str = "tables", **kwargs):
 # --------------------------------------------------------------------------------------------
 # Compact table path: tabulated values of log L in a normalised angle t (see tablegen/CONVOLUTION.md).
 #
-# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln p, ln(c−1), asinh u, t),
+# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh u, t),
 # g a 5-D C² cubic B-spline of *values*; t ∈ [0, 1] covers θ_h ∈ [0, π/2] for every parameter set.
 #
 # Angle coordinate (per sample, cheap):
@@ -190,12 +190,15 @@ def lobe(cos_theta_h, beta, p, c, u, *, path: str = "tables", **kwargs):
 #   τ₀² = a²/(a² + β²),  q = smin(p, 1)   (q < 1 resolves D's cusp at θ = 0 for p < 1)
 #   z = τ₀^{2q} [(1 + τ²/τ₀²)^q − 1],      ζ = log(1 + z)/(2q)   (≈ log τ in the tails)
 #   s = ζ/ζ_end,  t = [λ ζ/ζ_π + (1 − λ) s (1 + s⁴)^{−1/4}] / T_max
-# ζ_end: analytic estimate of where the lobe falls to 1e-4 of its peak (two-tail model, below);
+# ζ_end: the end of the lobe's body, where D's part of the lobe or S alone, whichever reaches
+# further, falls to 1e-4 of its peak (analytic, below). Not where S's faint tail ends: with D the
+# wider, that point moves with c and u while the knee where D's body ends does not, and the knee
+# then moved in t from node to node across the c and u axes (table version 3, errors up to 0.8).
 # ζ_π = ζ(π/2); T_max = the bracket at ζ_π. About 60 % of the t nodes resolve the lobe's body
-# (s ≤ 1), the rest (uniform in ζ) the far tail and the horizon (lobes peaked at grazing for
+# (s ≤ 1), the rest (uniform in ζ) the tails and the horizon (lobes peaked at grazing for
 # small p and large β). (log ζ_end, log ζ_π, log T_max) are smooth functions of (β, p, c, u);
 # they are tabulated on the same parameter grid (extra ``map``) so that a sample pays one 1-D
-# lookup instead of ~20 transcendentals, and log k on (ln β, ln p) (extra ``log_k``).
+# lookup instead of ~20 transcendentals, and log k on (ln β, ln(p − 0.1)) (extra ``log_k``).
 # --------------------------------------------------------------------------------------------
 
 TABLE_NAME = "convolution"
@@ -206,8 +209,13 @@ MAP_LAMBDA = 0.4
 MAP_END_LEVEL = 1e-4
 
 
+#: The table's p axis is uniform in ``ln(p − P_OFFSET)``: nodes twice as dense at p = 0.2 as
+#: in ln p (small p: D's heavy tail and grazing mass change fastest with p), as dense at p = 5.
+P_OFFSET = 0.1
+
+
 def _coords(beta, p, c):
-    return jnp.log(beta), jnp.log(p), jnp.log(c - 1.0)
+    return jnp.log(beta), jnp.log(p - P_OFFSET), jnp.log(c - 1.0)
 
 
 def shape_exponent(p):
@@ -234,9 +242,12 @@ def map_params(beta, p, c, u):
 
     Two-tail model of the lobe (small angles): relative to ``S(0) ∫D``, the lobe is
     ``≈ [D(θ)/d0 · ρ + S(θ)] / L₀`` with ``ρ = d0 ∫S dω`` and ``L₀ = ρ/(1 + ρ)``;
-    ``∫S dω ≈ π (1 − (1+4u²)^{−(c−1)/2}) / (2(c−1)u²)``. Its 1e-4 point is the larger of D's
-    (``(tan θ/β)^{2p} = ln((1+ρ)/ε)``) and S's (``2u tan θ = ((1+ρ)/(ερ))^{1/(c+1)}``), combined
-    as a root sum of squares; ``ζ_end`` is then softly capped at ``ζ_π``.
+    ``∫S dω ≈ π (1 − (1+4u²)^{−(c−1)/2}) / (2(c−1)u²)``. The body ends at the larger of D's
+    1e-4 point in that model (``(tan θ/β)^{2p} = ln((1+ρ)/ε)``) and S's own
+    (``2u tan θ = ε^{−1/(c+1)}``), combined as a root sum of squares; ``ζ_end`` is then softly
+    capped at ``ζ_π``. S's own point, not where S's tail falls to ε of the lobe's peak
+    (``((1+ρ)/(ερ))^{1/(c+1)}``, table version 3): with D the wider (ρ ≪ 1) that point lies far
+    out in the tail and moves with c and u, which moved D's knee in t from node to node.
     """
     a2 = 1.0 / (1.0 + 4.0 * u * u)
     q = shape_exponent(p)
@@ -250,7 +261,7 @@ def map_params(beta, p, c, u):
     log_1p_rho = jnp.logaddexp(0.0, log_rho)
     log_eps = math.log(MAP_END_LEVEL)
     tan_d = beta * (log_1p_rho - log_eps) ** (0.5 / p)
-    tan_s = jnp.sqrt(a2) * jnp.exp((log_1p_rho - log_eps - log_rho) / (c + 1.0))
+    tan_s = jnp.sqrt(a2) * jnp.exp(-log_eps / (c + 1.0))
     tan2_end = tan_d * tan_d + tan_s * tan_s
     s2_end = tan2_end / (1.0 + tan2_end)
     zeta_raw = _zeta(s2_end, 1.0 - s2_end, beta, q, a2)
