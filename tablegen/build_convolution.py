@@ -51,7 +51,7 @@ def axes(s=SETTINGS):
         Axis("log_beta", math.log(1e-3), 0.0, s["n_beta"], "ln β"),
         Axis(
             "log_p_minus_offset",
-            math.log(0.2 - conv.P_OFFSET),
+            math.log(conv.P_TABLE_MIN - conv.P_OFFSET),
             math.log(5.0 - conv.P_OFFSET),
             s["n_p"],
             "ln(p − P_OFFSET), convolution.P_OFFSET",

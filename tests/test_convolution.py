@@ -170,6 +170,19 @@ def test_table_no_catastrophic_point():
     assert np.all(ratio < 2.0) and np.all(ratio >= 0.0)
 
 
+def test_table_p_outside_its_axis_is_clamped():
+    """p below the axis (p − 0.1 ≤ 0 for p ≤ 0.1 in its coordinate) or above it: finite values
+    and gradients, the lookup clamped at the axis' ends as on every axis."""
+    ct = np.cos(np.array([0.0, 0.3, 1.2]))
+    for p in (0.01, 0.1, 0.15, 7.0):
+        v = np.asarray(lobe64(ct, 0.05, p, 2.0, 10.0, path="tables"))
+        g = jax.grad(lambda q: lobe64(np.cos(0.3), 0.05, q, 2.0, 10.0, path="tables"))(p)
+        assert np.all(np.isfinite(v)) and np.all(v > 0) and np.isfinite(float(g)), p
+    edge = np.asarray(lobe64(ct[:1], 0.05, 0.2, 2.0, 10.0, path="tables"))
+    below = np.asarray(lobe64(ct[:1], 0.05, 0.01, 2.0, 10.0, path="tables"))
+    np.testing.assert_allclose(below, edge, rtol=1e-12)  # at θ_h = 0 the map does not enter
+
+
 # Authors' table (docs/model.md §3.8): p, β, c, then (s, u') at u = 0.5, 1, 6, 30.
 AUTHORS = [
     (5, 0.0029, 3.02, [(1.264, 0.731), (1.238, 1.138), (1.216, 6.025), (0.520, 15.93)]),

@@ -209,13 +209,18 @@ MAP_LAMBDA = 0.4
 MAP_END_LEVEL = 1e-4
 
 
-#: The table's p axis is uniform in ``ln(p − P_OFFSET)``: nodes twice as dense at p = 0.2 as
-#: in ln p (small p: D's heavy tail and grazing mass change fastest with p), as dense at p = 5.
+#: The table's p axis is uniform in ``ln(p − P_OFFSET)``: with its 26 nodes, steps half as wide
+#: at p = 0.2 as version 3's 22 in ln p (small p: D's heavy tail and grazing mass change fastest
+#: with p), as wide at p = 5.
 P_OFFSET = 0.1
+#: The p axis' first node. Below it the lookup is clamped, as on every axis (and ``p − P_OFFSET``
+#: stays positive for any p).
+P_TABLE_MIN = 0.2
 
 
 def _coords(beta, p, c):
-    return jnp.log(beta), jnp.log(p - P_OFFSET), jnp.log(c - 1.0)
+    p_in = jnp.where(p >= P_TABLE_MIN, p, P_TABLE_MIN)  # p's own gradient at the first node too
+    return jnp.log(beta), jnp.log(p_in - P_OFFSET), jnp.log(c - 1.0)
 
 
 def shape_exponent(p):
