@@ -219,7 +219,9 @@ P_TABLE_MIN = 0.2
 
 
 def _coords(beta, p, c):
-    p_in = jnp.where(p >= P_TABLE_MIN, p, P_TABLE_MIN)  # p's own gradient at the first node too
+    # Below the first node a constant (the spline clamps there anyway, as version 3's did),
+    # so that the logarithm's argument stays positive; from the node on, p itself.
+    p_in = jnp.where(p >= P_TABLE_MIN, p, P_TABLE_MIN)
     return jnp.log(beta), jnp.log(p_in - P_OFFSET), jnp.log(c - 1.0)
 
 
