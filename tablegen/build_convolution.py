@@ -3,7 +3,7 @@
 Run from the repository root: ``python -m tablegen.build_convolution`` (deterministic, one process,
 a few minutes on 2 cores). Representation (see :mod:`twoscale.convolution`):
 
-``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh u, t)``
+``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh(u/u₀), t)``
 
 ``g`` is tabulated at the nodes of a 5-D grid (``values``, float32: the values are O(10), so
 float32's 6e-8 relative rounding is far below the interpolation error, and the file is half
@@ -37,7 +37,7 @@ SETTINGS = {
     "n_beta": 17,
     "n_p": 26,
     "n_c": 14,
-    "n_u": 20,
+    "n_u": 21,
     "n_t": 40,
     "n_theta_quad": 61,
     "n_phi_quad": 61,
@@ -57,7 +57,13 @@ def axes(s=SETTINGS):
             "ln(p − P_OFFSET), convolution.P_OFFSET",
         ),
         Axis("log_c_minus_1", math.log(0.01), math.log(4.0), s["n_c"], "ln(c − 1)"),
-        Axis("asinh_u", 0.0, math.asinh(1000.0), s["n_u"], "asinh u"),
+        Axis(
+            "asinh_u_over_scale",
+            0.0,
+            math.asinh(1000.0 / conv.U_SCALE),
+            s["n_u"],
+            "asinh(u / U_SCALE), convolution.U_SCALE",
+        ),
         Axis("t", 0.0, 1.0, s["n_t"], "normalised angle (convolution.normalised_angle)"),
     )
 
@@ -83,7 +89,7 @@ def build(s=SETTINGS, out=None, verbose=True):
     ax = axes(s)
     betas, ps = np.exp(ax[0].nodes()), conv.P_OFFSET + np.exp(ax[1].nodes())
     cs = 1.0 + np.exp(ax[2].nodes())
-    us = np.sinh(ax[3].nodes())
+    us = conv.U_SCALE * np.sinh(ax[3].nodes())
     us[0] = 0.0
     ts = ax[4].nodes()
     nq, nphi = s["n_theta_quad"], s["n_phi_quad"]
@@ -99,7 +105,10 @@ def build(s=SETTINGS, out=None, verbose=True):
 
     # Map parameters at every (β, p, c, u) node.
     grid = np.meshgrid(betas, ps, cs, us, indexing="ij")
+    # Stored as float32 (half the file space of float64, ≈ 1e-7 relative in t: far below the
+    # table's error); the node values below are computed with the stored, rounded map.
     log_map = np.asarray(conv.map_params(*(jnp.asarray(g) for g in grid)))
+    log_map = log_map.astype(np.float32).astype(np.float64)
 
     @jax.jit
     def node_lobes(beta, p, lk, lmap):
@@ -137,10 +146,15 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         raise ValueError("convolution map parameters are non-finite")
     meta = {
         "name": "convolution",
-        "version": 4,
+        "version": 5,
         "axes": [a.__dict__ for a in ax],
         "components": [],
-        "generator": {**s, "module": "tablegen.build_convolution", "values_dtype": "float32"},
+        "generator": {
+            **s,
+            "module": "tablegen.build_convolution",
+            "values_dtype": "float32",
+            "map_dtype": "float32",
+        },
         "build_seconds": seconds,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -150,7 +164,7 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         values=values.astype(np.float32),
         meta=np.array(json.dumps(meta)),
         log_k=log_k,
-        map=log_map,
+        map=log_map.astype(np.float32),
     )
     tmp.replace(path)
 

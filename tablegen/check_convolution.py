@@ -6,6 +6,12 @@ in β, p, c − 1 and uniform in asinh u), the relative error of ``lobe(path="ta
 θ_h grid (0, geometric from 1e-4 to π/2, uniform; jittered away from the generator's nodes),
 counted where the exact lobe exceeds 1e-3 of its peak over that grid, by region.
 :func:`accuracy_rows` feeds ``python -m tablegen.report``.
+
+``python -m tablegen.check_convolution --fits PATH ...`` checks the table where fits live
+instead: for every two-scale fit record (a ``params.json`` of ``python -m twoscale.fit``, or a
+folder searched for them, e.g. a campaign's ``--records``), the fit's (β, p, c) with
+``u = (b/λ) cos θ_d`` at the θ_d of :data:`FIT_THETA_D_DEG` and each of its wavelengths, and
+the largest error over θ_h as above (:func:`fit_errors`).
 """
 
 from __future__ import annotations
@@ -74,6 +80,61 @@ def errors(n=200, seed=0, level=1e-3, exact_nodes=81, chunk=64):
         "peak_at_normal": peak_at_normal,
         "finite": bool(np.all(np.isfinite(table))),
     }
+
+
+#: θ_d (degrees) at which :func:`fit_errors` takes a fit's ``u = (b/λ) cos θ_d``: from the
+#: normal to MERL's most grazing bins, where u is smallest.
+FIT_THETA_D_DEG = (0.0, 30.0, 60.0, 80.0, 89.0)
+
+
+def _fit_records(paths):
+    """``(name, params, wavelengths)`` of the two-scale fits with a diffraction lobe among
+    ``paths`` (JSON files, or folders searched recursively for ``*.json``), each fit once."""
+    import json
+    from pathlib import Path
+
+    files = []
+    for p in map(Path, paths):
+        files += sorted(p.rglob("*.json")) if p.is_dir() else [p]
+    out, seen = [], set()
+    for f in files:
+        try:
+            d = json.loads(f.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(d, dict) or d.get("model") != "two-scale":
+            continue
+        params, config = d.get("params") or {}, d.get("config") or {}
+        if params.get("b") is None or not config.get("diffraction", True):
+            continue
+        name = (d.get("data") or {}).get("name") or str(f)
+        key = (name, json.dumps(params, sort_keys=True))
+        if key in seen:  # the same fit twice (a campaign keeps the CLI's copy beside its own)
+            continue
+        seen.add(key)
+        out.append((name, params, tuple(config.get("wavelengths") or (0.645, 0.526, 0.444))))
+    return out
+
+
+def fit_errors(paths, level=1e-3, exact_nodes=81):
+    """Rows ``(name, max error, β, p, c, b)``, worst first: per fit record (:func:`_fit_records`)
+    the largest relative error of the table over θ_h where the lobe exceeds ``level`` × its peak,
+    over ``u = (b/λ) cos θ_d`` at :data:`FIT_THETA_D_DEG` and each of the fit's wavelengths."""
+    ct = np.cos(theta_grid())[None, :]
+    rows = []
+    for name, pr, wavelengths in _fit_records(paths):
+        us = np.array(
+            [pr["b"] / w * math.cos(math.radians(a)) for w in wavelengths for a in FIT_THETA_D_DEG]
+        )
+        b, p, c = (np.full((us.size, 1), float(pr[k])) for k in ("beta", "p", "c"))
+        ex = np.asarray(
+            lobe(ct, b, p, c, us[:, None], path="exact", n_theta=exact_nodes, n_phi=exact_nodes)
+        )
+        tb = np.asarray(lobe(ct, b, p, c, us[:, None], path="tables"))
+        mask = ex > level * ex.max(axis=1, keepdims=True)
+        err = float(np.where(mask, np.abs(tb / ex - 1.0), 0.0).max())
+        rows.append((name, err, float(pr["beta"]), float(pr["p"]), float(pr["c"]), float(pr["b"])))
+    return sorted(rows, key=lambda r: -r[1])
 
 
 def regions(e):
@@ -151,7 +212,25 @@ def main(argv=None):
     ap.add_argument("--n", type=int, default=400, help="random parameter sets")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worst", type=int, default=8, help="print the worst sets")
+    ap.add_argument(
+        "--fits",
+        nargs="+",
+        metavar="PATH",
+        help="check where these fits live instead (params.json files or folders of them)",
+    )
     args = ap.parse_args(argv)
+    if args.fits:
+        rows = fit_errors(args.fits)
+        if not rows:
+            ap.error("no two-scale fit with a diffraction lobe found in --fits")
+        err = np.array([r[1] for r in rows])
+        print(
+            f"fits {len(rows)}: above 1e-2 {int((err > 1e-2).sum())}, above 3e-2 "
+            f"{int((err > 3e-2).sum())}, median {np.median(err):.3g}, max {err.max():.3g}"
+        )
+        for name, e, beta, p, c, b in rows[: args.worst]:
+            print(f"  {name:28s} {e:.3g}  β={beta:.4g} p={p:.3g} c={c:.3g} b={b:.3g}")
+        return
     e = errors(args.n, args.seed)
     print(f"finite: {e['finite']}")
     head = (

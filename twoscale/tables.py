@@ -250,7 +250,7 @@ class Spline(eqx.Module):
         """Evaluate a 2-D spline (no components) where ``x0`` is shared by many samples.
 
         ``x0`` broadcasts against ``x1`` but has far fewer elements (on a grid of half/difference
-        angles, ``asinh u`` depends on the ``θ_d`` bin and channel, ``t`` on every sample). The
+        angles, the u coordinate depends on the ``θ_d`` bin and channel, ``t`` on every sample). The
         spline is first contracted along axis 0 once per element of ``x0`` (a row of
         coefficients along axis 1 each), then each sample does a 1-D lookup in its row: 4 terms
         per sample (cubic) instead of 16. The same values as ``self(x0, x1)`` up to rounding.
