@@ -581,10 +581,16 @@ def summary_sentences(rows: list[Row]) -> list[str]:
             f"- Time {what}: median {_median([t for t, _ in times]):.0f} s, "
             f"max {t_max:.0f} s ({name_max}); all fits of these materials: {total:.0f} s."
         )
-    resumed = [r.name for r in ok if r.resumed]
-    if resumed:
+    parts = []
+    for key in MODELS:  # per model: a campaign may rerun one model and reuse the others
+        names = [r.name for r in ok if key in r.resumed]
+        if names:
+            which = f"all {len(ok)}" if len(names) == len(ok) else _names(names)
+            parts.append(f"{LABELS[key]} on {which}")
+    if parts:
         lines.append(
-            f"- Reused from records (`--resume`, times from the original runs): {_names(resumed)}."
+            f"- Reused from records (`--resume`, times from the original runs): {'; '.join(parts)}; "
+            "every other fit was run anew."
         )
     if any(r.source == "Neural-BRDF" for r in ok):
         lines.append(

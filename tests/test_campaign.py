@@ -195,6 +195,20 @@ def test_summary_names_every_exception(rows):
     assert "Neural-BRDF rows" in text
 
 
+def test_summary_names_what_was_reused(rows):
+    """``--resume``: the summary says which models came from the records, per model."""
+    assert not any("Reused from records" in x for x in campaign.summary_sentences(rows))
+    for r in rows[:3]:
+        r.resumed = ["ggx", "beckmann"]
+    rows[0].resumed.append("specular")
+    text = "\n".join(campaign.summary_sentences(rows))
+    assert (
+        "Reused from records (`--resume`, times from the original runs): EPD + diffuse on "
+        "nickel; GGX + Lambert on all 3; Beckmann + Lambert on all 3; every other fit was run "
+        "anew." in text
+    )
+
+
 def test_summary_without_exceptions():
     text = "\n".join(campaign.summary_sentences([_row("chrome-steel", 0.1, 0.2, 0.3, 0.4)]))
     assert "below GGX + Lambert on 1 of 1 materials (not on: none)" in text
