@@ -61,9 +61,7 @@ PREVIEW_SCHEDULE = (dataclasses.replace(DEFAULT_SCHEDULE[0], keep=1), DEFAULT_SC
 
 
 #: Full: the last refinement on every fitted cell.
-FULL_SCHEDULE = DEFAULT_SCHEDULE[:2] + (
-    Stage(n_cells=None, keep=1, max_steps=LAST_STAGE_MAX_STEPS, round_steps=5),
-)
+FULL_SCHEDULE = DEFAULT_SCHEDULE[:2] + (dataclasses.replace(DEFAULT_SCHEDULE[2], n_cells=None),)
 
 
 SCHEDULES = {"default": DEFAULT_SCHEDULE, "preview": PREVIEW_SCHEDULE, "full": FULL_SCHEDULE}
