@@ -3,7 +3,7 @@
 Run from the repository root: ``python -m tablegen.build_convolution`` (deterministic, one process,
 a few minutes on 2 cores). Representation (see :mod:`twoscale.convolution`):
 
-``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh(u/u₀), t)``
+``log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c − 0.7), asinh(u/u₀), t)``
 
 ``g`` is tabulated at the nodes of a 5-D grid (``values``, float32: the values are O(10), so
 float32's 6e-8 relative rounding is far below the interpolation error, and the file is half
@@ -56,7 +56,13 @@ def axes(s=SETTINGS):
             s["n_p"],
             "ln(p − P_OFFSET), convolution.P_OFFSET",
         ),
-        Axis("log_c_minus_1", math.log(0.01), math.log(4.0), s["n_c"], "ln(c − 1)"),
+        Axis(
+            "log_c_minus_offset",
+            math.log(1.01 - conv.C_OFFSET),
+            math.log(5.0 - conv.C_OFFSET),
+            s["n_c"],
+            "ln(c − C_OFFSET), convolution.C_OFFSET",
+        ),
         Axis(
             "asinh_u_over_scale",
             0.0,
@@ -88,7 +94,7 @@ def build(s=SETTINGS, out=None, verbose=True):
     t0 = time.time()
     ax = axes(s)
     betas, ps = np.exp(ax[0].nodes()), conv.P_OFFSET + np.exp(ax[1].nodes())
-    cs = 1.0 + np.exp(ax[2].nodes())
+    cs = conv.C_OFFSET + np.exp(ax[2].nodes())
     us = conv.U_SCALE * np.sinh(ax[3].nodes())
     us[0] = 0.0
     ts = ax[4].nodes()
@@ -146,7 +152,7 @@ def _save(path, values, ax, log_k, log_map, s, seconds):
         raise ValueError("convolution map parameters are non-finite")
     meta = {
         "name": "convolution",
-        "version": 5,
+        "version": 6,
         "axes": [a.__dict__ for a in ax],
         "components": [],
         "generator": {

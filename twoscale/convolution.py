@@ -30,7 +30,7 @@ Two evaluation paths (``path=``):
 
 ``"tables"``
     Tabulated values of ``log L − log(cos²θ_h + k sin²θ_h)`` on a 5-D grid over
-    ``(ln β, ln(p − 0.1), ln(c−1), asinh(u/0.25), t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
+    ``(ln β, ln(p − 0.1), ln(c − 0.7), asinh(u/0.25), t)``, ``t`` a normalised angle that maps ``θ_h ∈ [0, π/2]``
     onto ``[0, 1]`` for every parameter set, interpolated by the C² spline of
     :mod:`twoscale.tables` (see :class:`LobeSlice` and ``tablegen/CONVOLUTION.md``).
 """
@@ -180,7 +180,7 @@ def lobe(cos_theta_h, beta, p, c, u, *, path: str = "tables", **kwargs):
 # --------------------------------------------------------------------------------------------
 # Compact table path: tabulated values of log L in a normalised angle t (see tablegen/CONVOLUTION.md).
 #
-# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c−1), asinh(u/u₀), t),
+# log (S*D)(θ_h) = log(cos²θ_h + k sin²θ_h) + g(ln β, ln(p − 0.1), ln(c − 0.7), asinh(u/u₀), t),
 # g a 5-D C² cubic B-spline of *values*; t ∈ [0, 1] covers θ_h ∈ [0, π/2] for every parameter set.
 #
 # Angle coordinate (per sample, cheap):
@@ -219,6 +219,12 @@ P_OFFSET = 0.1
 #: with errors up to 0.05; with the scale those first steps are 3.5× narrower, the steps at large
 #: u (in ln u there) 12 % wider, where the u axis was not the table's main error.
 U_SCALE = 0.25
+#: The table's c axis is uniform in ``ln(c − C_OFFSET)`` (version 6; version 5: ``ln(c − 1)``).
+#: With its 14 nodes a step is 0.063 wide in c at c = 1.01 and 0.75 at c = 4.4 (version 5: 0.0046
+#: and 1.6): version 5's worst errors sat between its top two nodes (c = 3.5, 5), where S's tail
+#: exponent c + 1 reshapes the lobe's shoulder, and its finest steps near c = 1 bought nothing
+#: (the errors of the sets with c ≤ 1.1 are the same with either axis).
+C_OFFSET = 0.7
 #: The p axis' first node. Below it the lookup is clamped, as on every axis (and ``p − P_OFFSET``
 #: stays positive for any p).
 P_TABLE_MIN = 0.2
@@ -228,7 +234,7 @@ def _coords(beta, p, c):
     # Below the first node a constant (the spline clamps there anyway, as version 3's did),
     # so that the logarithm's argument stays positive; from the node on, p itself.
     p_in = jnp.where(p >= P_TABLE_MIN, p, P_TABLE_MIN)
-    return jnp.log(beta), jnp.log(p_in - P_OFFSET), jnp.log(c - 1.0)
+    return jnp.log(beta), jnp.log(p_in - P_OFFSET), jnp.log(c - C_OFFSET)
 
 
 def shape_exponent(p):
