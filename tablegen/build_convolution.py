@@ -93,9 +93,7 @@ def _theta_of_t(t, u, beta, q, log_map, steps):
 def build(s=SETTINGS, out=None, verbose=True):
     t0 = time.time()
     ax = axes(s)
-    betas, ps = np.exp(ax[0].nodes()), conv.P_OFFSET + np.exp(ax[1].nodes())
-    cs = conv.C_OFFSET + np.exp(ax[2].nodes())
-    us = conv.U_SCALE * np.sinh(ax[3].nodes())
+    betas, ps, cs, us = conv.params_of_coords(*(a.nodes() for a in ax[:4]))
     us[0] = 0.0
     ts = ax[4].nodes()
     nq, nphi = s["n_theta_quad"], s["n_phi_quad"]

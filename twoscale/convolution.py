@@ -237,6 +237,17 @@ def _coords(beta, p, c):
     return jnp.log(beta), jnp.log(p_in - P_OFFSET), jnp.log(c - C_OFFSET)
 
 
+def params_of_coords(log_beta, log_p, log_c, asinh_u):
+    """``(β, p, c, u)`` at table coordinates: the inverse of :func:`_coords` and of u's
+    ``asinh(u / U_SCALE)`` (NumPy or Python floats; the builder's nodes, tests at a node)."""
+    return (
+        np.exp(log_beta),
+        P_OFFSET + np.exp(log_p),
+        C_OFFSET + np.exp(log_c),
+        U_SCALE * np.sinh(asinh_u),
+    )
+
+
 def shape_exponent(p):
     """``q = smin(p, 1) = (p⁻⁴ + 1)^{−1/4}``: the exponent of the angle coordinate."""
     return (p**-4.0 + 1.0) ** -0.25
